@@ -1,0 +1,1 @@
+"""The application: CLI, headless runner (browser app and benchmarks follow)."""

@@ -1,0 +1,58 @@
+"""CLI: python -m lab run SCENE --out DIR [...]. Exit codes: 0 done, 2 bad input, 3 non-finite simulation."""
+import argparse
+import sys
+
+from sims.backend import ARCH_CHOICES, ArchUnavailable
+from sims.config import ConfigError
+
+
+def _positive(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not value >= 0 or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"expected a finite number >= 0, got {text}")
+    return value
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="python -m lab", description="Surgical surface-effects lab: cautery burn marks in texture space.")
+    commands = parser.add_subparsers(dest="command", required=True)
+    run = commands.add_parser("run", help="run a scene headless and write metrics.json, final.png, state.npz")
+    run.add_argument("scene", help="scene YAML file")
+    run.add_argument("--out", required=True, help="output folder")
+    run.add_argument("--duration", type=_positive, help="simulated seconds (default: the scene's duration_s)")
+    run.add_argument("--frames-every", type=_positive, metavar="S", help="also write frames/frame_NNNNN.png every S simulated seconds")
+    run.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a scene key, e.g. tissue.conductivity_w_mk=0.6 or instruments.0.tip_temperature_c=300")
+    run.add_argument("--arch", choices=ARCH_CHOICES, default="auto", help="Taichi device: auto (GPU if present, else CPU), cpu or gpu")
+    run.add_argument("--quiet", action="store_true", help="no progress bar")
+    return parser
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    from lab import runner
+    from sims.scene import Scene
+
+    try:
+        scene = Scene.from_file(args.scene, args.set, arch=args.arch)
+        metrics = runner.run(scene, args.out, args.duration, args.frames_every, progress=not args.quiet)
+    except ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except ArchUnavailable as exc:
+        print(f"error: {args.scene}: --arch: {exc}", file=sys.stderr)
+        return 2
+    except runner.SimulationDiverged as exc:
+        print(f"error: {args.scene}: simulation: {exc}", file=sys.stderr)
+        return 3
+    except OSError as exc:
+        print(f"error: {args.out}: --out: cannot write outputs: {exc.strerror or exc}", file=sys.stderr)
+        return 2
+    print(f"{metrics['scene']}: {metrics['steps']} steps in {metrics['wall_s']:.2f} s on {metrics['arch']} -> {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""Simulation core: texture-space tissue surface, cautery, display. No web or CLI code."""

@@ -1,0 +1,54 @@
+"""Taichi start-up: arch choice that never crashes without a GPU, cache dir, one init per process."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+ARCH_CHOICES = ("auto", "cpu", "gpu")
+_started_arch: str | None = None
+
+
+class ArchUnavailable(RuntimeError):
+    """--arch gpu on a machine without a usable GPU."""
+
+
+def cache_dir() -> Path:
+    """Folder for compiled kernels and derived data (env TISSUE_LAB_CACHE, else ~/.cache/tissue-lab)."""
+    root = os.environ.get("TISSUE_LAB_CACHE") or Path.home() / ".cache" / "tissue-lab"
+    path = Path(root)
+    path.mkdir(parents=True, exist_ok=True)
+    return path
+
+
+def init(arch: str = "auto") -> str:
+    """Start Taichi once per process and return the arch name it runs on ('x64', 'cuda', ...).
+
+    `auto` tries CUDA then Vulkan and falls back to the CPU. `gpu` does the same but fails
+    with ArchUnavailable when no GPU is found. `ti.gpu` itself is never used: its OpenGL probe
+    segfaults on machines without a GPU. A second call with any arch returns the first arch.
+    """
+    global _started_arch
+    if arch not in ARCH_CHOICES:
+        raise ValueError(f"arch must be one of {', '.join(ARCH_CHOICES)}, not {arch!r}")
+    if _started_arch is not None:
+        return _started_arch
+    os.environ.setdefault("TI_SKIP_VERSION_CHECK", "ON")
+    import taichi as ti
+
+    candidates = ti.cpu if arch == "cpu" else [ti.cuda, ti.vulkan]
+    ti.init(
+        arch=candidates,
+        offline_cache=True,
+        offline_cache_file_path=str(cache_dir() / "taichi"),
+        default_fp=ti.f32,
+        log_level=ti.WARN,
+    )
+    _started_arch = ti.lang.impl.current_cfg().arch.name
+    if arch == "gpu" and _started_arch in ("x64", "arm64"):
+        raise ArchUnavailable("--arch gpu: no CUDA or Vulkan device found (use --arch auto or cpu)")
+    return _started_arch
+
+
+def started_arch() -> str | None:
+    """The arch Taichi runs on, or None before init()."""
+    return _started_arch

@@ -1,0 +1,345 @@
+"""Scene files: YAML -> validated, defaults-filled dict. Every error names the file and the dotted key."""
+from __future__ import annotations
+
+import copy
+import difflib
+import math
+from pathlib import Path
+
+import yaml
+
+from sims import params
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+MODELS = ("cautery",)
+STAGE_FIELDS = ("coagulation", "char", "omega", "temperature_c")
+SHAPE_TYPES = ("ball", "capsule", "spatula", "mesh")
+DEFAULT_STAGES = [
+    {"name": "healthy", "texture": "textures/liver_healthy.png"},
+    {"name": "coagulated", "texture": "textures/liver_coagulated.png", "field": "coagulation", "from": 0.2, "to": 0.95},
+    {"name": "charred", "texture": "textures/liver_charred.png", "field": "char", "from": 0.05, "to": 0.8},
+]
+
+
+class ConfigError(Exception):
+    """Bad input: `file: key: message`."""
+
+    def __init__(self, file, key: str, message: str):
+        super().__init__(f"{file}: {key}: {message}")
+        self.file, self.key, self.message = str(file), key, message
+
+
+class _Context:
+    def __init__(self, file: Path):
+        self.file = file
+
+    def fail(self, key: str, message: str):
+        raise ConfigError(self.file, key or "(top level)", message)
+
+    def resolve(self, key: str, name: str) -> Path:
+        """A relative path: the scene's folder, then the repo root, then static/."""
+        path = Path(name).expanduser()
+        candidates = [path] if path.is_absolute() else [self.file.parent / path, REPO_ROOT / path, REPO_ROOT / "static" / path]
+        for candidate in candidates:
+            if candidate.is_file():
+                try:
+                    with open(candidate, "rb") as handle:
+                        handle.read(1)
+                except OSError as exc:
+                    self.fail(key, f"cannot read {candidate}: {exc.strerror}")
+                return candidate.resolve()
+        self.fail(key, f"file not found: {name} (looked in {', '.join(str(c.parent) for c in candidates)})")
+
+
+def _join(key: str, part) -> str:
+    return f"{key}.{part}" if key else str(part)
+
+
+# --- schema nodes: each is validate(value, key, ctx) -> clean value -------------------------------
+
+class Number:
+    def __init__(self, spec: params.ParamSpec, default=True):
+        self.spec, self.default = spec, spec.default if default is True else default
+
+    def validate(self, value, key, ctx):
+        problem = self.spec.check(value)
+        if problem:
+            ctx.fail(key, problem)
+        return int(value) if self.spec.integer else float(value)
+
+
+class Boolean:
+    def __init__(self, default=False):
+        self.default = default
+
+    def validate(self, value, key, ctx):
+        if not isinstance(value, bool):
+            ctx.fail(key, f"expected true or false, got {value!r}")
+        return value
+
+
+class Text:
+    def __init__(self, default=None, choices=None):
+        self.default, self.choices = default, choices
+
+    def validate(self, value, key, ctx):
+        if not isinstance(value, str) or not value:
+            ctx.fail(key, f"expected a non-empty string, got {value!r}")
+        if self.choices and value not in self.choices:
+            ctx.fail(key, f"unknown value {value!r}; expected one of: {', '.join(self.choices)}")
+        return value
+
+
+class FilePath(Text):
+    def validate(self, value, key, ctx):
+        return ctx.resolve(key, super().validate(value, key, ctx))
+
+
+class Vector:
+    def __init__(self, default, length=3, nonzero=False, bound=1.0e6):
+        self.default, self.length, self.nonzero, self.bound = default, length, nonzero, bound
+
+    def validate(self, value, key, ctx):
+        if not isinstance(value, (list, tuple)) or len(value) != self.length:
+            ctx.fail(key, f"expected a list of {self.length} numbers, got {value!r}")
+        for item in value:
+            if isinstance(item, bool) or not isinstance(item, (int, float)) or not math.isfinite(item):
+                ctx.fail(key, f"expected finite numbers, got {value!r}")
+            if abs(item) > self.bound:
+                ctx.fail(key, f"{item} is outside [-{self.bound:g}, {self.bound:g}]")
+        if self.nonzero and not any(value):
+            ctx.fail(key, "must not be the zero vector")
+        return [float(item) for item in value]
+
+
+class ListOf:
+    def __init__(self, item, default=(), max_len=64):
+        self.item, self.default, self.max_len = item, list(default), max_len
+
+    def validate(self, value, key, ctx):
+        if not isinstance(value, list):
+            ctx.fail(key, f"expected a list, got {type(value).__name__}")
+        if len(value) > self.max_len:
+            ctx.fail(key, f"at most {self.max_len} entries, got {len(value)}")
+        return [self.item.validate(item, _join(key, index), ctx) for index, item in enumerate(value)]
+
+
+class Record:
+    """A mapping with known keys; `required` keys must be present, the others get defaults."""
+
+    def __init__(self, fields: dict, required=(), default=None, check=None):
+        self.fields, self.required, self.check = fields, set(required), check
+        self.default = {} if default is None else default
+
+    def validate(self, value, key, ctx):
+        if value is None:
+            value = {}
+        if not isinstance(value, dict):
+            ctx.fail(key, f"expected a mapping, got {type(value).__name__}")
+        for name in value:
+            if name not in self.fields:
+                close = difflib.get_close_matches(str(name), self.fields, n=1)
+                hint = f" (did you mean {close[0]!r}?)" if close else f"; known keys: {', '.join(self.fields)}"
+                ctx.fail(_join(key, name), f"unknown key{hint}")
+        clean = {}
+        for name, node in self.fields.items():
+            if name in value and value[name] is not None:
+                clean[name] = node.validate(value[name], _join(key, name), ctx)
+            elif name in self.required:
+                ctx.fail(_join(key, name), "missing required key")
+            else:
+                clean[name] = copy.deepcopy(node.default)
+        if self.check:
+            self.check(clean, key, ctx)
+        return clean
+
+
+def _numbers(table: dict[str, params.ParamSpec], default=True) -> dict:
+    return {name: Number(spec, default) for name, spec in table.items()}
+
+
+# --- cross-field checks -----------------------------------------------------------------------
+
+def _check_models(models, key, ctx):
+    if len(set(models)) != len(models):
+        ctx.fail(key, f"a model is listed twice: {models}")
+
+
+def _check_shape(shape, key, ctx):
+    if shape["type"] == "mesh" and shape["file"] is None:
+        ctx.fail(_join(key, "file"), "a mesh instrument needs a file")
+    if shape["type"] != "mesh" and shape["file"] is not None:
+        ctx.fail(_join(key, "file"), f"only a mesh instrument takes a file, this one is a {shape['type']}")
+
+
+def _check_path(path, key, ctx):
+    times = [frame["t_s"] for frame in path]
+    for index in range(1, len(times)):
+        if times[index] <= times[index - 1]:
+            ctx.fail(_join(_join(key, index), "t_s"), f"keyframe times must increase, {times[index]} follows {times[index - 1]}")
+
+
+def _check_instrument(instrument, key, ctx):
+    _check_path(instrument["path"], _join(key, "path"), ctx)
+
+
+def _check_stages(stages, key, ctx):
+    if not stages:
+        ctx.fail(key, "needs at least one stage (the healthy look)")
+    if stages[0]["field"] is not None:
+        ctx.fail(_join(_join(key, 0), "field"), "the first stage is the base look and takes no field")
+    for index, stage in enumerate(stages[1:], start=1):
+        if stage["field"] is None:
+            ctx.fail(_join(_join(key, index), "field"), f"missing required key (one of {', '.join(STAGE_FIELDS)})")
+        if not stage["from"] < stage["to"]:
+            ctx.fail(_join(_join(key, index), "to"), f"must be greater than from ({stage['from']})")
+
+
+def _check_tissue(tissue, key, ctx):
+    preset = params.TISSUE_PRESETS[tissue["preset"]]
+    for name, value in preset.items():
+        if tissue[name] is None:
+            tissue[name] = value
+
+
+_BOUND = params.ParamSpec("bound", "", 0.0, -1.0e6, 1.0e6, "")
+_TIME = params.ParamSpec("t_s", "s", 0.0, 0.0, 1.0e5, "")
+_FROM_TO = params.ParamSpec("threshold", "", 0.0, -1.0e4, 1.0e4, "")
+_TILE = params.ParamSpec("tile", "repeats", 1, 1, 64, "", integer=True)
+_RATE = params.ParamSpec("rate_ml_s", "ml/s", 0.02, 0.0, 10.0, "")
+
+_KEYFRAME = Record(
+    {
+        "t_s": Number(_TIME),
+        "position_mm": Vector(None),
+        "direction": Vector(None, nonzero=True),
+        "roll_deg": Number(params.INSTRUMENT["roll_deg"], default=None),
+        "energized": Boolean(None),
+        "tip_temperature_c": Number(params.INSTRUMENT["tip_temperature_c"], default=None),
+    },
+    required=("t_s",),
+)
+
+_INSTRUMENT = Record(
+    {
+        "name": Text(),
+        "shape": Record(
+            {"type": Text(choices=SHAPE_TYPES), **_numbers(params.SHAPE), "file": FilePath()},
+            required=("type",),
+            check=_check_shape,
+        ),
+        **_numbers(params.INSTRUMENT),
+        "position_mm": Vector([0.0, 0.0, 0.0]),
+        "direction": Vector([0.0, 0.0, -1.0], nonzero=True),
+        "energized": Boolean(False),
+        "path": ListOf(_KEYFRAME, max_len=10000),
+    },
+    required=("name", "shape"),
+    check=_check_instrument,
+)
+
+_STAGE = Record(
+    {
+        "name": Text(),
+        "texture": FilePath(),
+        "field": Text(choices=STAGE_FIELDS),
+        "from": Number(_FROM_TO, default=0.0),
+        "to": Number(_FROM_TO, default=1.0),
+        "tile": Number(_TILE),
+    },
+    required=("name", "texture"),
+)
+
+_BLEED_POINT = Record(
+    {
+        "name": Text(),
+        "position_mm": Vector(None),
+        "rate_ml_s": Number(_RATE),
+        "start_s": Number(_TIME, default=0.0),
+        "stop_s": Number(_TIME, default=None),
+    },
+    required=("name", "position_mm"),
+)
+
+SCENE = Record(
+    {
+        "name": Text(),
+        "mesh": FilePath(),
+        **_numbers(params.SIMULATION),
+        "models": ListOf(Text(choices=MODELS), default=["cautery"]),
+        "gravity_mm_s2": Vector([0.0, 0.0, -9810.0]),
+        "tissue": Record({"preset": Text("liver", choices=tuple(params.TISSUE_PRESETS)), **_numbers(params.TISSUE, default=None)}, check=_check_tissue),
+        "cautery": Record(_numbers(params.CAUTERY)),
+        "look": Record({"stages": ListOf(_STAGE, default=DEFAULT_STAGES, max_len=8)}, check=lambda look, key, ctx: _check_stages(look["stages"], _join(key, "stages"), ctx)),
+        "instruments": ListOf(_INSTRUMENT, max_len=8),
+        "bleed_points": ListOf(_BLEED_POINT),
+    },
+    required=("name", "mesh"),
+)
+
+
+# --- entry points ---------------------------------------------------------------------------
+
+def parse_override(text: str) -> tuple[list[str], object]:
+    """`dotted.key=value` -> (path parts, YAML-parsed value). Raises ValueError on bad syntax."""
+    key, sep, raw = text.partition("=")
+    if not sep or not key.strip():
+        raise ValueError(f"--set expects dotted.key=value, got {text!r}")
+    try:
+        value = yaml.safe_load(raw) if raw.strip() else None
+    except yaml.YAMLError as exc:
+        raise ValueError(f"--set {key}: value is not valid YAML: {exc}") from None
+    return key.strip().split("."), value
+
+
+def apply_override(raw: dict, parts: list[str], value, ctx: _Context) -> None:
+    """Set raw[parts...] = value in the unvalidated scene; list items are addressed by index."""
+    node = raw
+    for depth, part in enumerate(parts):
+        key = ".".join(parts[: depth + 1])
+        last = depth == len(parts) - 1
+        if isinstance(node, list):
+            if not part.isdigit() or int(part) >= len(node):
+                ctx.fail(key, f"--set: no list item {part!r} (the list has {len(node)} items)")
+            index = int(part)
+            if last:
+                node[index] = value
+            else:
+                node = node[index]
+        elif isinstance(node, dict):
+            if last:
+                node[part] = value
+            else:
+                node = node.setdefault(part, {})
+        else:
+            ctx.fail(".".join(parts[:depth]), f"--set: cannot set {part!r} inside a {type(node).__name__}")
+
+
+def load_scene_config(path, overrides: list[str] = ()) -> dict:
+    """Read, override and validate a scene file. Raises ConfigError naming file and key."""
+    path = Path(path)
+    ctx = _Context(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        ctx.fail("(file)", "scene file not found")
+    except (OSError, UnicodeDecodeError) as exc:
+        ctx.fail("(file)", f"cannot read scene file: {exc}")
+    try:
+        raw = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f"line {mark.line + 1}" if mark is not None else "(yaml)"
+        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        ctx.fail(where, f"YAML syntax error: {problem}")
+    if not isinstance(raw, dict):
+        ctx.fail("(top level)", f"a scene must be a YAML mapping, got {type(raw).__name__}")
+    for text_override in overrides:
+        try:
+            parts, value = parse_override(text_override)
+        except ValueError as exc:
+            ctx.fail(text_override.partition("=")[0] or "--set", str(exc))
+        apply_override(raw, parts, value, ctx)
+    config = SCENE.validate(raw, "", ctx)
+    config["scene_file"] = path.resolve()
+    return config

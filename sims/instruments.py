@@ -1,0 +1,274 @@
+"""Instruments: shapes with signed distance (analytic primitives; mesh -> SDF grid), poses, scripted paths.
+
+Local frame of an instrument: origin at `position_mm`, local z points back along the shaft
+(opposite to `direction`, which points from the handle to the tip), local y is the part of
+world z (or world y for a vertical tool) perpendicular to the shaft, then rolled by `roll_deg`.
+- ball: sphere of radius r centred at the origin
+- capsule: segment from the origin to (0, 0, length) with radius r
+- spatula: flat blade, box of width (x) x thickness (y) x length (z) from z = 0 to z = length
+- mesh: a closed mesh given in local coordinates (mm), distance sampled trilinearly from a grid
+Signed distance is negative inside the instrument.
+"""
+import hashlib
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import taichi as ti
+
+from sims.backend import cache_dir
+
+SHAPE_CODES = {"ball": 0, "capsule": 1, "spatula": 2, "mesh": 3}
+
+
+def local_frame(direction, roll_deg: float) -> np.ndarray:
+    """(3, 3) rotation whose rows are the local x, y, z axes in world coordinates."""
+    z = -np.asarray(direction, np.float64)
+    z /= np.linalg.norm(z)
+    up = np.array([0.0, 0.0, 1.0]) if abs(z[2]) < 0.99 else np.array([0.0, 1.0, 0.0])
+    y = up - z * (up @ z)
+    y /= np.linalg.norm(y)
+    x = np.cross(y, z)
+    angle = math.radians(roll_deg)
+    x, y = math.cos(angle) * x + math.sin(angle) * y, -math.sin(angle) * x + math.cos(angle) * y
+    return np.stack([x, y, z])
+
+
+@dataclass
+class Pose:
+    position_mm: np.ndarray
+    direction: np.ndarray
+    roll_deg: float
+    energized: bool
+    tip_temperature_c: float
+
+
+@dataclass
+class Instrument:
+    """A validated scene instrument (see sims.config) and its scripted path."""
+
+    name: str
+    shape: dict
+    base: Pose
+    path: list = field(default_factory=list)
+
+    @classmethod
+    def from_config(cls, item: dict) -> "Instrument":
+        base = Pose(np.array(item["position_mm"]), np.array(item["direction"]), item["roll_deg"], item["energized"], item["tip_temperature_c"])
+        return cls(item["name"], item["shape"], base, item["path"])
+
+    def pose_at(self, t_s: float) -> Pose:
+        """Pose at time t: keyframe values interpolated linearly (energized holds its last value)."""
+        return Pose(
+            np.asarray(self._lerp("position_mm", t_s), np.float64),
+            np.asarray(self._lerp("direction", t_s), np.float64),
+            float(self._lerp("roll_deg", t_s)),
+            bool(self._hold("energized", t_s)),
+            float(self._lerp("tip_temperature_c", t_s)),
+        )
+
+    def _keys(self, name):
+        return [(frame["t_s"], frame[name]) for frame in self.path if frame[name] is not None]
+
+    def _lerp(self, name, t_s):
+        keys = self._keys(name)
+        if not keys:
+            return getattr(self.base, name)
+        times = [time for time, _ in keys]
+        index = int(np.searchsorted(times, t_s, side="right"))
+        if index == 0:
+            return keys[0][1]
+        if index == len(keys):
+            return keys[-1][1]
+        (t0, v0), (t1, v1) = keys[index - 1], keys[index]
+        w = (t_s - t0) / (t1 - t0)
+        return (1.0 - w) * np.asarray(v0, np.float64) + w * np.asarray(v1, np.float64)
+
+    def _hold(self, name, t_s):
+        value = getattr(self.base, name)
+        for time, frame_value in self._keys(name):
+            if time <= t_s:
+                value = frame_value
+        return value
+
+
+# --- mesh instruments: signed distance grid --------------------------------------------------
+
+@ti.func
+def _closest_on_triangle(p, a, b, c):
+    """Closest point to p on triangle abc (Ericson, Real-Time Collision Detection 5.1.5)."""
+    ab, ac, ap = b - a, c - a, p - a
+    d1, d2 = ab.dot(ap), ac.dot(ap)
+    result = a
+    bp = p - b
+    d3, d4 = ab.dot(bp), ac.dot(bp)
+    cp = p - c
+    d5, d6 = ab.dot(cp), ac.dot(cp)
+    vc = d1 * d4 - d3 * d2
+    vb = d5 * d2 - d1 * d6
+    va = d3 * d6 - d5 * d4
+    if d1 <= 0 and d2 <= 0:
+        result = a
+    elif d3 >= 0 and d4 <= d3:
+        result = b
+    elif vc <= 0 and d1 >= 0 and d3 <= 0:
+        result = a + ab * (d1 / (d1 - d3))
+    elif d6 >= 0 and d5 <= d6:
+        result = c
+    elif vb <= 0 and d2 >= 0 and d6 <= 0:
+        result = a + ac * (d2 / (d2 - d6))
+    elif va <= 0 and (d4 - d3) >= 0 and (d5 - d6) >= 0:
+        result = b + (c - b) * ((d4 - d3) / ((d4 - d3) + (d5 - d6)))
+    else:
+        denom = 1.0 / (va + vb + vc)
+        result = a + ab * (vb * denom) + ac * (vc * denom)
+    return result
+
+
+@ti.kernel
+def _sdf_grid(tris: ti.types.ndarray(), origin: ti.types.ndarray(), spacing: ti.f32, out: ti.types.ndarray()):
+    """Brute-force signed distance at grid nodes: nearest triangle, sign from the winding number."""
+    for i, j, k in ti.ndrange(out.shape[0], out.shape[1], out.shape[2]):
+        p = ti.Vector([origin[0] + i * spacing, origin[1] + j * spacing, origin[2] + k * spacing])
+        best = 1e30
+        winding = 0.0
+        for f in range(tris.shape[0]):
+            a = ti.Vector([tris[f, 0, 0], tris[f, 0, 1], tris[f, 0, 2]])
+            b = ti.Vector([tris[f, 1, 0], tris[f, 1, 1], tris[f, 1, 2]])
+            c = ti.Vector([tris[f, 2, 0], tris[f, 2, 1], tris[f, 2, 2]])
+            best = ti.min(best, (p - _closest_on_triangle(p, a, b, c)).norm_sqr())
+            ra, rb, rc = a - p, b - p, c - p
+            la, lb, lc = ra.norm(), rb.norm(), rc.norm()
+            numer = ra.dot(rb.cross(rc))
+            denom = la * lb * lc + ra.dot(rb) * lc + ra.dot(rc) * lb + rb.dot(rc) * la
+            winding += 2.0 * ti.atan2(numer, denom)
+        sign = -1.0 if winding / (4.0 * math.pi) > 0.5 else 1.0
+        out[i, j, k] = sign * ti.sqrt(best)
+
+
+def mesh_sdf_grid(path, resolution: int):
+    """Signed distance grid of a closed mesh in its own frame (cached on disk).
+
+    Returns (grid (R0, R1, R2) float32 mm, origin (3,) mm, spacing mm). The grid pads the bounding
+    box by 3 cells so the zero level set lies inside it.
+    """
+    import trimesh
+
+    data = open(path, "rb").read()
+    key = hashlib.sha1(data + str(resolution).encode()).hexdigest()
+    cached = cache_dir() / "sdf" / f"{key}.npz"
+    if cached.is_file():
+        with np.load(cached) as saved:
+            return saved["grid"], saved["origin"], float(saved["spacing"])
+    mesh = trimesh.load(str(path), force="mesh")
+    lo, hi = mesh.bounds
+    spacing = float((hi - lo).max() / resolution)
+    origin = lo - 3 * spacing
+    counts = np.ceil((hi - lo) / spacing).astype(int) + 7
+    grid = np.zeros(tuple(counts), np.float32)
+    _sdf_grid(np.ascontiguousarray(mesh.triangles, np.float32), origin.astype(np.float32), spacing, grid)
+    cached.parent.mkdir(parents=True, exist_ok=True)
+    np.savez(cached, grid=grid, origin=origin, spacing=spacing)
+    return grid, origin, spacing
+
+
+# --- Taichi side -------------------------------------------------------------------------------
+
+@ti.data_oriented
+class InstrumentFields:
+    """Per-instrument pose and shape in Taichi fields, and their signed distance as a ti.func."""
+
+    def __init__(self, instruments: list):
+        self.instruments = instruments
+        count = max(len(instruments), 1)
+        self.count = len(instruments)
+        self.shape_code = ti.field(ti.i32, count)
+        self.dims = ti.Vector.field(4, ti.f32, count)        # radius, length, width, thickness (mm)
+        self.position = ti.Vector.field(3, ti.f32, count)    # mm
+        self.rotation = ti.Matrix.field(3, 3, ti.f32, count)  # rows: local axes in world coordinates
+        self.tip_temperature = ti.field(ti.f32, count)       # C
+        self.energized = ti.field(ti.i32, count)
+        grids = [None] * len(instruments)
+        for index, instrument in enumerate(instruments):
+            shape = instrument.shape
+            if shape["type"] == "mesh":
+                grids[index] = mesh_sdf_grid(shape["file"], shape["sdf_resolution"])
+        dims = [g[0].shape for g in grids if g is not None] or [(2, 2, 2)]
+        cells = tuple(max(d[axis] for d in dims) for axis in range(3))
+        self.sdf = ti.field(ti.f32, (count,) + cells)
+        self.sdf_origin = ti.Vector.field(3, ti.f32, count)
+        self.sdf_spacing = ti.field(ti.f32, count)
+        self.sdf_cells = ti.Vector.field(3, ti.i32, count)
+        sdf = np.full((count,) + cells, 1e3, np.float32)
+        origin, spacing, cell_counts = np.zeros((count, 3), np.float32), np.ones(count, np.float32), np.full((count, 3), 2, np.int32)
+        codes, dims_arr = np.zeros(count, np.int32), np.zeros((count, 4), np.float32)
+        for index, instrument in enumerate(instruments):
+            shape = instrument.shape
+            codes[index] = SHAPE_CODES[shape["type"]]
+            dims_arr[index] = shape["radius_mm"], shape["length_mm"], shape["width_mm"], shape["thickness_mm"]
+            if grids[index] is not None:
+                grid, origin[index], spacing[index] = grids[index]
+                sdf[(index,) + tuple(slice(0, n) for n in grid.shape)] = grid
+                cell_counts[index] = grid.shape
+        self.shape_code.from_numpy(codes)
+        self.dims.from_numpy(dims_arr)
+        self.sdf.from_numpy(sdf)
+        self.sdf_origin.from_numpy(origin)
+        self.sdf_spacing.from_numpy(spacing)
+        self.sdf_cells.from_numpy(cell_counts)
+        self.poses = []
+        self.set_time(0.0)
+
+    def set_time(self, t_s: float) -> None:
+        """Move every instrument to its scripted pose at time t."""
+        self.set_poses([instrument.pose_at(t_s) for instrument in self.instruments])
+
+    def set_poses(self, poses: list) -> None:
+        count = max(len(poses), 1)
+        position, rotation = np.zeros((count, 3), np.float32), np.tile(np.eye(3, dtype=np.float32), (count, 1, 1))
+        temperature, energized = np.zeros(count, np.float32), np.zeros(count, np.int32)
+        for index, pose in enumerate(poses):
+            position[index] = pose.position_mm
+            rotation[index] = local_frame(pose.direction, pose.roll_deg)
+            temperature[index] = pose.tip_temperature_c
+            energized[index] = pose.energized
+        self.position.from_numpy(position)
+        self.rotation.from_numpy(rotation)
+        self.tip_temperature.from_numpy(temperature)
+        self.energized.from_numpy(energized)
+        self.poses = poses
+
+    @ti.func
+    def distance(self, k, world):
+        """Signed distance (mm) from world point to instrument k."""
+        p = self.rotation[k] @ (world - self.position[k])
+        r, length, width, thickness = self.dims[k][0], self.dims[k][1], self.dims[k][2], self.dims[k][3]
+        code = self.shape_code[k]
+        d = 0.0
+        if code == 0:
+            d = p.norm() - r
+        elif code == 1:
+            h = ti.min(ti.max(p.z, 0.0), length)
+            d = (p - ti.Vector([0.0, 0.0, h])).norm() - r
+        elif code == 2:
+            q = ti.abs(p - ti.Vector([0.0, 0.0, 0.5 * length])) - ti.Vector([0.5 * width, 0.5 * thickness, 0.5 * length])
+            d = ti.max(q, 0.0).norm() + ti.min(ti.max(q.x, q.y, q.z), 0.0)
+        else:
+            d = self._grid_distance(k, p)
+        return d
+
+    @ti.func
+    def _grid_distance(self, k, p):
+        """Trilinear SDF lookup; outside the grid, distance to the grid box plus the value at the box."""
+        cells = self.sdf_cells[k]
+        g = (p - self.sdf_origin[k]) / self.sdf_spacing[k]
+        upper = ti.cast(cells - 1, ti.f32)
+        clamped = ti.min(ti.max(g, 0.0), upper)
+        outside = (g - clamped).norm() * self.sdf_spacing[k]
+        base = ti.min(ti.cast(ti.floor(clamped), ti.i32), cells - 2)
+        w = clamped - ti.cast(base, ti.f32)
+        value = 0.0
+        for dx, dy, dz in ti.static(ti.ndrange(2, 2, 2)):
+            weight = (w.x if dx else 1.0 - w.x) * (w.y if dy else 1.0 - w.y) * (w.z if dz else 1.0 - w.z)
+            value += weight * self.sdf[k, base.x + dx, base.y + dy, base.z + dz]
+        return value + outside

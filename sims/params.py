@@ -1,0 +1,90 @@
+"""Parameter specs (name, unit, default, range, help), shared by scene files, --set and sliders."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    """One tunable number. `integer` params accept only whole numbers."""
+
+    name: str
+    unit: str
+    default: float
+    min: float
+    max: float
+    help: str
+    integer: bool = False
+
+    def check(self, value) -> str | None:
+        """Return what is wrong with `value`, or None when it is acceptable."""
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            return f"expected a number ({self.unit}), got {type(value).__name__} {value!r}"
+        if not math.isfinite(value):
+            return f"must be finite, got {value}"
+        if self.integer and int(value) != value:
+            return f"must be a whole number, got {value}"
+        if not self.min <= value <= self.max:
+            return f"{value} is outside [{self.min:g}, {self.max:g}] {self.unit}"
+        return None
+
+
+def _table(*specs: ParamSpec) -> dict[str, ParamSpec]:
+    return {spec.name: spec for spec in specs}
+
+
+SIMULATION = _table(
+    ParamSpec("texture_size", "texels", 512, 16, 2048, "simulation texels per side of the texture", integer=True),
+    ParamSpec("time_step_s", "s", 0.01, 1e-4, 0.05, "simulation time step; heat substeps are added automatically"),
+    ParamSpec("duration_s", "s", 10.0, 0.0, 3600.0, "length of a headless run"),
+)
+
+TISSUE = _table(
+    ParamSpec("density_kg_m3", "kg/m^3", 1079.0, 500.0, 2000.0, "tissue density rho"),
+    ParamSpec("specific_heat_j_kgk", "J/(kg K)", 3540.0, 1000.0, 5000.0, "tissue specific heat c"),
+    ParamSpec("conductivity_w_mk", "W/(m K)", 0.52, 0.05, 5.0, "tissue thermal conductivity k"),
+    ParamSpec("perfusion_1_s", "1/s", 3.6e-3, 0.0, 0.05, "blood perfusion rate w_b (Pennes)"),
+    ParamSpec("blood_density_kg_m3", "kg/m^3", 1000.0, 900.0, 1200.0, "perfusing blood density rho_b"),
+    ParamSpec("blood_specific_heat_j_kgk", "J/(kg K)", 3639.0, 3000.0, 4500.0, "perfusing blood specific heat c_b"),
+    ParamSpec("body_temperature_c", "C", 37.0, 0.0, 45.0, "arterial blood temperature T_body"),
+    ParamSpec("initial_temperature_c", "C", 37.0, 0.0, 60.0, "tissue temperature at t = 0"),
+    ParamSpec("arrhenius_ln_a", "ln(1/s)", math.log(7.39e39), 10.0, 250.0, "natural log of the Arrhenius frequency factor A"),
+    ParamSpec("activation_energy_j_mol", "J/mol", 2.577e5, 5.0e4, 8.0e5, "Arrhenius activation energy Ea"),
+    ParamSpec("char_temperature_c", "C", 180.0, 100.0, 400.0, "charring starts above this temperature"),
+    ParamSpec("char_rate_1_s_c", "1/(s C)", 0.02, 0.0, 1.0, "char growth per second per degree above the charring temperature"),
+)
+
+CAUTERY = _table(
+    ParamSpec("contact_conductance_w_m2k", "W/(m^2 K)", 5000.0, 100.0, 1.0e5, "tool-tissue contact conductance h"),
+    ParamSpec("heated_layer_mm", "mm", 1.0, 0.1, 5.0, "thickness of the tissue layer the contact heat goes into"),
+    ParamSpec("contact_distance_mm", "mm", 0.3, 0.0, 3.0, "gap over which contact heating fades to zero"),
+)
+
+INSTRUMENT = _table(
+    ParamSpec("tip_temperature_c", "C", 250.0, 20.0, 400.0, "temperature of the energized instrument surface"),
+    ParamSpec("roll_deg", "deg", 0.0, -360.0, 360.0, "rotation of the instrument about its axis"),
+)
+
+SHAPE = _table(
+    ParamSpec("radius_mm", "mm", 1.5, 0.05, 20.0, "ball or capsule radius"),
+    ParamSpec("length_mm", "mm", 10.0, 0.1, 200.0, "capsule segment or spatula blade length"),
+    ParamSpec("width_mm", "mm", 3.0, 0.05, 50.0, "spatula blade width"),
+    ParamSpec("thickness_mm", "mm", 0.5, 0.02, 10.0, "spatula blade thickness"),
+    ParamSpec("sdf_resolution", "cells", 40, 8, 128, "mesh instrument distance-grid cells along the longest side", integer=True),
+)
+
+# Tissue presets: physical values (DESIGN section 7). Liver: Arrhenius after the widely used
+# liver values; skin: Henriques' A and Ea with IT'IS-database thermal properties.
+TISSUE_PRESETS: dict[str, dict[str, float]] = {
+    "liver": {name: spec.default for name, spec in TISSUE.items()},
+    "skin": {
+        **{name: spec.default for name, spec in TISSUE.items()},
+        "density_kg_m3": 1109.0,
+        "specific_heat_j_kgk": 3391.0,
+        "conductivity_w_mk": 0.37,
+        "perfusion_1_s": 1.8e-3,
+        "arrhenius_ln_a": math.log(3.1e98),
+        "activation_energy_j_mol": 6.28e5,
+    },
+}

@@ -1,0 +1,251 @@
+"""TissueSurface: a triangle mesh in millimetres rasterised into texel maps of its UV space.
+
+All (H, W) arrays are in image orientation, the same as the PNGs written: row 0 is the top of the
+image (v = 1), column 0 is u = 0. Texel (row r, col c) has its centre at
+u = (c + 0.5) / W, v = 1 - (r + 0.5) / H. "Grid coordinates" x = u W (columns) and y = (1 - v) H (rows).
+"""
+
+import hashlib
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import taichi as ti
+import trimesh
+from scipy import ndimage
+
+from sims.backend import cache_dir
+
+UV_OVERLAP_TOLERANCE = 1e-3  # fraction of covered texels two triangles may both claim before UVs count as overlapping
+_BARY_EPS = 1e-5
+_DEGENERATE_AREA_FRACTION = 1e-4  # texels smaller than this fraction of the median texel area are masked
+
+
+class MeshError(ValueError):
+    """A mesh that cannot be used (unreadable, empty, covering no texels)."""
+
+
+@dataclass
+class TissueSurface:
+    """Texel maps of a mesh. Shapes: (H, W) scalars, (H, W, 3) vectors; H = W = size."""
+
+    size: int
+    position_mm: np.ndarray       # (H, W, 3) world position of the texel centre, mm
+    normal: np.ndarray            # (H, W, 3) unit normal
+    tangent_u: np.ndarray         # (H, W, 3) dP/du, mm per texel step in u
+    tangent_v: np.ndarray         # (H, W, 3) dP/dv, mm per texel step in v
+    texel_area_mm2: np.ndarray    # (H, W) surface area a texel covers, mm^2 (0 where masked)
+    mask: np.ndarray              # (H, W) bool, texel lies on the surface
+    fill_index: np.ndarray        # (H, W) int, flat index of the nearest valid texel (gutter fill for display)
+    vertices_mm: np.ndarray       # (V, 3) mesh vertices used (split at UV seams)
+    faces: np.ndarray             # (F, 3) triangle vertex indices
+    uv: np.ndarray                # (V, 2) UVs in [0, 1], OBJ convention (v up)
+    uv_source: str                # "mesh" when the file UVs were unique, else "xatlas"
+    skipped_triangles: int        # triangles with zero area in UV or in 3D
+
+    @property
+    def metric(self) -> np.ndarray:
+        """(H, W, 2, 2) first fundamental form in grid coordinates (x = columns, y = rows), mm^2 per texel^2."""
+        ex, ey = self.tangent_u, -self.tangent_v
+        g = np.empty(self.mask.shape + (2, 2), np.float32)
+        g[..., 0, 0] = np.einsum("...i,...i", ex, ex)
+        g[..., 0, 1] = g[..., 1, 0] = np.einsum("...i,...i", ex, ey)
+        g[..., 1, 1] = np.einsum("...i,...i", ey, ey)
+        return g
+
+    @property
+    def area_mm2(self) -> float:
+        return float(self.texel_area_mm2.sum(dtype=np.float64))
+
+
+def load_mesh(path) -> trimesh.Trimesh:
+    """Read any mesh trimesh reads (OBJ, PLY, GLB, STL) without merging UV seams. Raises MeshError."""
+    try:
+        mesh = trimesh.load(str(path), force="mesh", process=False)
+    except Exception as exc:  # trimesh raises many types for unreadable files
+        raise MeshError(f"cannot read mesh: {exc}") from None
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise MeshError("the file holds no triangles")
+    if not np.isfinite(mesh.vertices).all():
+        raise MeshError("vertex positions are not all finite")
+    return mesh
+
+
+def mesh_uv(mesh: trimesh.Trimesh) -> np.ndarray | None:
+    """The mesh's per-vertex UVs (V, 2), or None when it has none."""
+    uv = getattr(mesh.visual, "uv", None)
+    if uv is None or len(uv) != len(mesh.vertices):
+        return None
+    return np.asarray(uv, np.float64)
+
+
+def build_surface(mesh: trimesh.Trimesh, size: int) -> TissueSurface:
+    """Rasterise `mesh` into size x size texel maps, using its UVs when unique, else an xatlas atlas."""
+    vertices = np.asarray(mesh.vertices, np.float64)
+    faces = np.asarray(mesh.faces, np.int64)
+    uv = mesh_uv(mesh)
+    uv_source = "mesh"
+    owner = None
+    if uv is not None and np.isfinite(uv).all() and uv.min() >= -1e-6 and uv.max() <= 1 + 1e-6:
+        owner, overlap = _rasterise(vertices, faces, uv, size)
+        covered = max(int((owner >= 0).sum()), 1)
+        if overlap / covered > UV_OVERLAP_TOLERANCE:
+            owner = None
+    if owner is None:
+        vertices, faces, uv = atlas_uv(vertices, faces, size)
+        uv_source = "xatlas"
+        owner, _ = _rasterise(vertices, faces, uv, size)
+    return _texel_maps(vertices, faces, uv, owner, size, uv_source)
+
+
+def atlas_uv(vertices: np.ndarray, faces: np.ndarray, size: int):
+    """Unique UVs from xatlas (cached on disk): (vertices (V', 3), faces (F, 3), uv (V', 2))."""
+    key = hashlib.sha1(vertices.astype(np.float64).tobytes() + faces.astype(np.int64).tobytes() + str(size).encode()).hexdigest()
+    cached = cache_dir() / "atlas" / f"{key}.npz"
+    if cached.is_file():
+        with np.load(cached) as data:
+            return data["vertices"], data["faces"], data["uv"]
+    import xatlas
+
+    atlas = xatlas.Atlas()
+    atlas.add_mesh(vertices.astype(np.float32), faces.astype(np.uint32))
+    pack = xatlas.PackOptions()
+    pack.resolution = int(size)
+    pack.padding = 2
+    pack.bilinear = True
+    atlas.generate(pack_options=pack)
+    vmapping, indices, uv = atlas[0]
+    result = vertices[vmapping], indices.astype(np.int64), uv.astype(np.float64)
+    cached.parent.mkdir(parents=True, exist_ok=True)
+    np.savez(cached, vertices=result[0], faces=result[1], uv=result[2])
+    return result
+
+
+def _grid_coords(uv: np.ndarray, size: int) -> np.ndarray:
+    """UV (.., 2) -> grid coordinates (x = u W, y = (1 - v) H)."""
+    return np.stack([uv[..., 0] * size, (1.0 - uv[..., 1]) * size], axis=-1)
+
+
+@ti.kernel
+def _claim_texels(tri_xy: ti.types.ndarray(), owner: ti.types.ndarray(), strict: ti.types.ndarray(), eps: ti.f32):
+    """Each texel centre inside a triangle (with tolerance) takes the lowest triangle id; count strict overlaps."""
+    height, width = owner.shape[0], owner.shape[1]
+    for f in range(tri_xy.shape[0]):
+        a = ti.Vector([tri_xy[f, 0, 0], tri_xy[f, 0, 1]])
+        b = ti.Vector([tri_xy[f, 1, 0], tri_xy[f, 1, 1]])
+        c = ti.Vector([tri_xy[f, 2, 0], tri_xy[f, 2, 1]])
+        area = (b - a).cross(c - a)
+        x0 = ti.max(ti.cast(ti.floor(ti.min(a.x, b.x, c.x) - 0.5), ti.i32), 0)
+        x1 = ti.min(ti.cast(ti.ceil(ti.max(a.x, b.x, c.x) - 0.5), ti.i32), width - 1)
+        y0 = ti.max(ti.cast(ti.floor(ti.min(a.y, b.y, c.y) - 0.5), ti.i32), 0)
+        y1 = ti.min(ti.cast(ti.ceil(ti.max(a.y, b.y, c.y) - 0.5), ti.i32), height - 1)
+        for y in range(y0, y1 + 1):
+            for x in range(x0, x1 + 1):
+                p = ti.Vector([x + 0.5, y + 0.5])
+                w0 = (b - p).cross(c - p) / area
+                w1 = (c - p).cross(a - p) / area
+                w2 = 1.0 - w0 - w1
+                lowest = ti.min(w0, w1, w2)
+                if lowest >= -eps:
+                    ti.atomic_min(owner[y, x], f)
+                if lowest > eps:
+                    ti.atomic_add(strict[y, x], 1)
+
+
+def _triangle_frames(vertices, faces, uv, size):
+    """Per triangle: grid coords (F, 3, 2), dP/dx and dP/dy (F, 3) in mm per texel, validity (F,)."""
+    tri_xy = _grid_coords(uv[faces], size)
+    tri_p = vertices[faces]
+    d1, d2 = tri_xy[:, 1] - tri_xy[:, 0], tri_xy[:, 2] - tri_xy[:, 0]
+    e1, e2 = tri_p[:, 1] - tri_p[:, 0], tri_p[:, 2] - tri_p[:, 0]
+    det = d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0]
+    area_3d = 0.5 * np.linalg.norm(np.cross(e1, e2), axis=1)
+    scale = max(np.median(area_3d[area_3d > 0]) if (area_3d > 0).any() else 1.0, 1e-30)
+    valid = (np.abs(det) > 1e-9) & (area_3d > 1e-9 * scale) & np.isfinite(det)
+    safe = np.where(valid, det, 1.0)
+    # [e1 e2] = [Px Py] [[d1x d2x], [d1y d2y]]  ->  solve for Px, Py
+    px = (e1 * d2[:, 1:2] - e2 * d1[:, 1:2]) / safe[:, None]
+    py = (e2 * d1[:, 0:1] - e1 * d2[:, 0:1]) / safe[:, None]
+    return tri_xy, px, py, valid
+
+
+def _rasterise(vertices, faces, uv, size):
+    """Owner triangle per texel (H, W) (-1 outside) and the number of texels two triangles both claim."""
+    tri_xy, _, _, valid = _triangle_frames(vertices, faces, uv, size)
+    ids = np.flatnonzero(valid)
+    owner = np.full((size, size), len(ids), np.int32)
+    strict = np.zeros((size, size), np.int32)
+    if len(ids):
+        _claim_texels(np.ascontiguousarray(tri_xy[ids], np.float32), owner, strict, _BARY_EPS)
+    inside = owner < len(ids)
+    owner_faces = np.full((size, size), -1, np.int64)
+    owner_faces[inside] = ids[owner[inside]]
+    return owner_faces, int((strict > 1).sum())
+
+
+def _vertex_normals(vertices, faces):
+    """Area-weighted normals (V, 3), shared by vertices at the same position (smooth across UV seams)."""
+    _, weld = np.unique(vertices.round(6), axis=0, return_inverse=True)
+    weld = weld.reshape(-1)
+    tri = vertices[faces]
+    face_n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    acc = np.zeros((weld.max() + 1, 3))
+    for corner in range(3):
+        np.add.at(acc, weld[faces[:, corner]], face_n)
+    normals = acc[weld]
+    return normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-30)
+
+
+def _scatter(values: np.ndarray, rows, cols, size: int) -> np.ndarray:
+    """Per-texel values (N, ...) -> (H, W, ...) float32 grid, zero elsewhere."""
+    out = np.zeros((size, size) + values.shape[1:], np.float32)
+    out[rows, cols] = values
+    return out
+
+
+def _texel_maps(vertices, faces, uv, owner, size, uv_source) -> TissueSurface:
+    tri_xy, px, py, valid = _triangle_frames(vertices, faces, uv, size)
+    rows, cols = np.nonzero(owner >= 0)
+    f = owner[rows, cols]
+    p = np.stack([cols + 0.5, rows + 0.5], axis=1)
+    a, b, c = tri_xy[f, 0], tri_xy[f, 1], tri_xy[f, 2]
+
+    def cross2(u, w):
+        return u[:, 0] * w[:, 1] - u[:, 1] * w[:, 0]
+
+    area = cross2(b - a, c - a)
+    w0, w1 = cross2(b - p, c - p) / area, cross2(c - p, a - p) / area
+    bary = np.clip(np.stack([w0, w1, 1.0 - w0 - w1], axis=1), 0.0, 1.0)
+    bary /= bary.sum(axis=1, keepdims=True)
+    corners = faces[f]
+    position = np.einsum("nk,nkd->nd", bary, vertices[corners])
+    normal = np.einsum("nk,nkd->nd", bary, _vertex_normals(vertices, faces)[corners])
+    length = np.linalg.norm(normal, axis=1, keepdims=True)
+    face_normal = np.cross(vertices[corners[:, 1]] - vertices[corners[:, 0]], vertices[corners[:, 2]] - vertices[corners[:, 0]])
+    face_normal /= np.maximum(np.linalg.norm(face_normal, axis=1, keepdims=True), 1e-30)
+    normal = np.where(length > 1e-6, normal / np.maximum(length, 1e-30), face_normal)
+    texel_area = np.linalg.norm(np.cross(px[f], py[f]), axis=1)
+
+    keep = texel_area > _DEGENERATE_AREA_FRACTION * (np.median(texel_area) if len(texel_area) else 0.0)
+    keep &= np.isfinite(position).all(axis=1) & np.isfinite(normal).all(axis=1)
+    rows, cols, f = rows[keep], cols[keep], f[keep]
+    if len(rows) == 0:
+        raise MeshError(f"the mesh covers no texel of a {size}x{size} texture")
+    mask = np.zeros((size, size), bool)
+    mask[rows, cols] = True
+    _, (near_r, near_c) = ndimage.distance_transform_edt(~mask, return_indices=True)
+    return TissueSurface(
+        size=size,
+        position_mm=_scatter(position[keep], rows, cols, size),
+        normal=_scatter(normal[keep], rows, cols, size),
+        tangent_u=_scatter(px[f], rows, cols, size),
+        tangent_v=_scatter(-py[f], rows, cols, size),
+        texel_area_mm2=_scatter(texel_area[keep], rows, cols, size),
+        mask=mask,
+        fill_index=(near_r * size + near_c).astype(np.int64),
+        vertices_mm=vertices.astype(np.float32),
+        faces=faces.astype(np.int32),
+        uv=uv.astype(np.float32),
+        uv_source=uv_source,
+        skipped_triangles=int((~valid).sum()),
+    )

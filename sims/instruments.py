@@ -18,6 +18,7 @@ import taichi as ti
 
 from sims.backend import cache_dir
 
+GRID_PADDING_MM = 3.0  # matches the largest contact distance (sims.params)
 SHAPE_CODES = {"ball": 0, "capsule": 1, "spatula": 2, "mesh": 3}
 
 
@@ -150,12 +151,13 @@ def mesh_sdf_grid(path, resolution: int):
     """Signed distance grid of a closed mesh in its own frame (cached on disk).
 
     Returns (grid (R0, R1, R2) float32 mm, origin (3,) mm, spacing mm). The grid pads the bounding
-    box by 3 cells so the zero level set lies inside it.
+    box by GRID_PADDING_MM plus 3 cells, so every distance up to the largest contact distance is
+    sampled from the grid; farther out the box-projection estimate is an upper bound.
     """
     import trimesh
 
     data = open(path, "rb").read()
-    key = hashlib.sha1(data + str(resolution).encode()).hexdigest()
+    key = hashlib.sha1(data + f"{resolution}:{GRID_PADDING_MM}".encode()).hexdigest()
     cached = cache_dir() / "sdf" / f"{key}.npz"
     if cached.is_file():
         with np.load(cached) as saved:
@@ -163,8 +165,9 @@ def mesh_sdf_grid(path, resolution: int):
     mesh = trimesh.load(str(path), force="mesh")
     lo, hi = mesh.bounds
     spacing = float((hi - lo).max() / resolution)
-    origin = lo - 3 * spacing
-    counts = np.ceil((hi - lo) / spacing).astype(int) + 7
+    pad = GRID_PADDING_MM + 3 * spacing
+    origin = lo - pad
+    counts = np.ceil((hi - lo + 2 * pad) / spacing).astype(int) + 1
     grid = np.zeros(tuple(counts), np.float32)
     _sdf_grid(np.ascontiguousarray(mesh.triangles, np.float32), origin.astype(np.float32), spacing, grid)
     cached.parent.mkdir(parents=True, exist_ok=True)

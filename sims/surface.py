@@ -89,13 +89,22 @@ def build_surface(mesh: trimesh.Trimesh, size: int) -> TissueSurface:
     if uv is not None and np.isfinite(uv).all() and uv.min() >= -1e-6 and uv.max() <= 1 + 1e-6:
         owner, overlap = _rasterise(vertices, faces, uv, size)
         covered = max(int((owner >= 0).sum()), 1)
-        if overlap / covered > UV_OVERLAP_TOLERANCE:
+        if overlap / covered > UV_OVERLAP_TOLERANCE or _uv_collapsed_fraction(vertices, faces, uv) > UV_OVERLAP_TOLERANCE:
             owner = None
     if owner is None:
         vertices, faces, uv = atlas_uv(vertices, faces, size)
         uv_source = "xatlas"
         owner, _ = _rasterise(vertices, faces, uv, size)
     return _texel_maps(vertices, faces, uv, owner, size, uv_source)
+
+
+def _uv_collapsed_fraction(vertices, faces, uv) -> float:
+    """Fraction of the 3D surface area whose triangles have zero area in UV."""
+    tri, tri_uv = vertices[faces], uv[faces]
+    area_3d = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    d1, d2 = tri_uv[:, 1] - tri_uv[:, 0], tri_uv[:, 2] - tri_uv[:, 0]
+    area_uv = 0.5 * np.abs(d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0])
+    return float(area_3d[area_uv < 1e-12].sum() / max(area_3d.sum(), 1e-30))
 
 
 def atlas_uv(vertices: np.ndarray, faces: np.ndarray, size: int):

@@ -36,12 +36,13 @@ def init(arch: str = "auto") -> str:
     import taichi as ti
 
     candidates = ti.cpu if arch == "cpu" else [ti.cuda, ti.vulkan]
+    ti.set_logging_level(ti.ERROR)  # the fallback to CPU is expected, not a warning for the user
     ti.init(
         arch=candidates,
         offline_cache=True,
         offline_cache_file_path=str(cache_dir() / "taichi"),
         default_fp=ti.f32,
-        log_level=ti.WARN,
+        log_level=ti.ERROR,
     )
     _started_arch = ti.lang.impl.current_cfg().arch.name
     if arch == "gpu" and _started_arch in ("x64", "arm64"):

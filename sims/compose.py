@@ -48,10 +48,10 @@ class Composer:
         self.textures = ti.Vector.field(3, ti.f32, (count, height, width))
         self.textures.from_numpy(np.stack(textures).astype(np.float32))
         self.codes = ti.field(ti.i32, count)
-        self.ranges = ti.Vector.field(2, ti.f32, count)
+        self.ranges = ti.Vector.field(3, ti.f32, count)  # from, to, opacity
         codes = [FIELD_CODES[stage["field"]] if stage["field"] else -1 for stage in stages]
         self.codes.from_numpy(np.array(codes, np.int32))
-        self.ranges.from_numpy(np.array([[stage["from"], stage["to"]] for stage in stages], np.float32))
+        self.ranges.from_numpy(np.array([[stage["from"], stage["to"], stage["opacity"]] for stage in stages], np.float32))
         self.fill = ti.field(ti.i32, (height, width))
         self.fill.from_numpy(fill_index.astype(np.int32))
         self.rgb = ti.Vector.field(3, ti.u8, (height, width))
@@ -80,6 +80,6 @@ class Composer:
                     value = omega[sr, sc]
                 lo, hi = self.ranges[s][0], self.ranges[s][1]
                 x = ti.min(ti.max((value - lo) / (hi - lo), 0.0), 1.0)
-                weight = x * x * (3.0 - 2.0 * x)
+                weight = x * x * (3.0 - 2.0 * x) * self.ranges[s][2]
                 color = color * (1.0 - weight) + self.textures[s, sr, sc] * weight
             self.rgb[r, c] = ti.cast(ti.min(ti.max(color * 255.0 + 0.5, 0.0), 255.0), ti.u8)

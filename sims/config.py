@@ -127,9 +127,8 @@ class ListOf:
 class Record:
     """A mapping with known keys; `required` keys must be present, the others get defaults."""
 
-    def __init__(self, fields: dict, required=(), default=None, check=None):
+    def __init__(self, fields: dict, required=(), check=None):
         self.fields, self.required, self.check = fields, set(required), check
-        self.default = {} if default is None else default
 
     def validate(self, value, key, ctx):
         if value is None:
@@ -147,6 +146,8 @@ class Record:
                 clean[name] = node.validate(value[name], _join(key, name), ctx)
             elif name in self.required:
                 ctx.fail(_join(key, name), "missing required key")
+            elif isinstance(node, (Record, ListOf)):  # nested defaults are filled and checked too
+                clean[name] = node.validate(copy.deepcopy(getattr(node, "default", {})), _join(key, name), ctx)
             else:
                 clean[name] = copy.deepcopy(node.default)
         if self.check:
@@ -206,6 +207,7 @@ _BOUND = params.ParamSpec("bound", "", 0.0, -1.0e6, 1.0e6, "")
 _TIME = params.ParamSpec("t_s", "s", 0.0, 0.0, 1.0e5, "")
 _FROM_TO = params.ParamSpec("threshold", "", 0.0, -1.0e4, 1.0e4, "")
 _TILE = params.ParamSpec("tile", "repeats", 1, 1, 64, "", integer=True)
+_OPACITY = params.ParamSpec("opacity", "", 1.0, 0.0, 1.0, "")
 _RATE = params.ParamSpec("rate_ml_s", "ml/s", 0.02, 0.0, 10.0, "")
 
 _KEYFRAME = Record(
@@ -246,6 +248,7 @@ _STAGE = Record(
         "from": Number(_FROM_TO, default=0.0),
         "to": Number(_FROM_TO, default=1.0),
         "tile": Number(_TILE),
+        "opacity": Number(_OPACITY),
     },
     required=("name", "texture"),
 )

@@ -14,36 +14,47 @@ class Scene:
     """Everything a browser or a script does with a scene. Time advances in fixed steps of time_step_s."""
 
     def __init__(self, config: dict, arch: str = "auto"):
-        self.arch = backend.init(arch)
-        from sims.compose import Composer, TextureError, fill_gutters, load_texture
+        from sims.compose import TextureError, fill_gutters, load_texture
         from sims.surface import MeshError, build_surface, load_mesh
 
         self.config = config
         self.file = config["scene_file"]
-        try:
-            self.surface = build_surface(load_mesh(config["mesh"]), config["texture_size"])
+        size = config["texture_size"]
+        try:  # read every input file before the device starts, so bad input fails fast
+            mesh = load_mesh(config["mesh"])
         except MeshError as exc:
             raise ConfigError(self.file, "mesh", f"{config['mesh']}: {exc}") from None
-        size = config["texture_size"]
         textures = []
         for index, stage in enumerate(config["look"]["stages"]):
             try:
                 textures.append(load_texture(stage["texture"], size, stage["tile"]))
             except TextureError as exc:
                 raise ConfigError(self.file, f"look.stages.{index}.texture", f"{stage['texture']}: {exc}") from None
+        for index, item in enumerate(config["instruments"]):
+            if item["shape"]["type"] == "mesh":
+                key = f"instruments.{index}.shape.file"
+                try:
+                    tool = load_mesh(item["shape"]["file"])
+                except MeshError as exc:
+                    raise ConfigError(self.file, key, f"{item['shape']['file']}: {exc}") from None
+                if not tool.is_watertight:
+                    raise ConfigError(self.file, key, f"{item['shape']['file']}: an instrument mesh must be closed (watertight) to have an inside")
+        self.arch = backend.init(arch)
+        try:
+            self.surface = build_surface(mesh, size)
+        except MeshError as exc:
+            raise ConfigError(self.file, "mesh", f"{config['mesh']}: {exc}") from None
         self.models = list(config["models"])
         self.time_s, self.steps = 0.0, 0
         self.cautery = None
         self._base_rgb = fill_gutters((textures[0] * 255 + 0.5).astype(np.uint8), self.surface.fill_index)
         if "cautery" in self.models:
             from sims.cautery import Cautery
+            from sims.compose import Composer
             from sims.instruments import Instrument, InstrumentFields
 
             self.instruments = [Instrument.from_config(item) for item in config["instruments"]]
-            try:
-                self.instrument_fields = InstrumentFields(self.instruments)
-            except (OSError, ValueError) as exc:
-                raise ConfigError(self.file, "instruments", f"cannot build a mesh instrument: {exc}") from None
+            self.instrument_fields = InstrumentFields(self.instruments)
             self.cautery = Cautery(self.surface, config["tissue"], config["cautery"], self.instrument_fields)
             self.composer = Composer(config["look"]["stages"], textures, self.surface.fill_index)
 

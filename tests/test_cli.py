@@ -1,0 +1,165 @@
+"""The run command: outputs, determinism, and one clear line for every class of bad input."""
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from lab.__main__ import main
+from sims.config import REPO_ROOT
+
+DEFAULT_SCENE = REPO_ROOT / "scenes" / "default.yaml"
+
+SMALL_SCENE = {
+    "name": "small",
+    "mesh": "meshes/patch.obj",
+    "texture_size": 64,
+    "models": ["cautery"],
+    "duration_s": 0.5,
+    "instruments": [{
+        "name": "ball", "shape": {"type": "ball", "radius_mm": 2.0}, "tip_temperature_c": 250,
+        "position_mm": [0.0, 0.0, 1.5], "energized": True,
+    }],
+}
+
+
+def write_scene(tmp_path: Path, scene=None, text: str | None = None) -> Path:
+    path = tmp_path / "scene.yaml"
+    path.write_text(text if text is not None else yaml.safe_dump(scene or SMALL_SCENE))
+    return path
+
+
+def run_cli(capsys, *args):
+    code = main(["run", *map(str, args), "--quiet"])
+    captured = capsys.readouterr()
+    return code, captured.err.strip().splitlines()
+
+
+def bad(scene_changes=None, delete=None):
+    scene = json.loads(json.dumps(SMALL_SCENE))
+    for dotted, value in (scene_changes or {}).items():
+        node, *path = [scene] + dotted.split(".")
+        for part in path[:-1]:
+            node = node[int(part)] if isinstance(node, list) else node[part]
+        node[int(path[-1]) if isinstance(node, list) else path[-1]] = value
+    for key in delete or ():
+        scene.pop(key)
+    return scene
+
+
+BAD_SCENES = {
+    "unknown top-level key": (bad({"texture_sise": 64}), "texture_sise", "did you mean 'texture_size'"),
+    "unknown nested key": (bad({"tissue": {"conductivty_w_mk": 0.5}}), "tissue.conductivty_w_mk", "unknown key"),
+    "wrong type": (bad({"texture_size": "big"}), "texture_size", "expected a number"),
+    "wrong container": (bad({"instruments": {"name": "ball"}}), "instruments", "expected a list"),
+    "out of range": (bad({"tissue": {"conductivity_w_mk": 50.0}}), "tissue.conductivity_w_mk", "outside"),
+    "not finite": (bad({"time_step_s": float("nan")}), "time_step_s", "finite"),
+    "infinite vector": (bad({"instruments.0.position_mm": [0.0, float("inf"), 0.0]}), "instruments.0.position_mm", "finite"),
+    "unknown model": (bad({"models": ["cautery", "smoke"]}), "models.1", "unknown value 'smoke'"),
+    "unknown shape": (bad({"instruments.0.shape.type": "scalpel"}), "instruments.0.shape.type", "unknown value"),
+    "missing required key": (bad(delete=["mesh"]), "mesh", "missing required key"),
+    "missing mesh file": (bad({"mesh": "meshes/nowhere.obj"}), "mesh", "file not found"),
+    "keyframes out of order": (bad({"instruments.0.path": [{"t_s": 1.0}, {"t_s": 0.5}]}), "instruments.0.path.1.t_s", "must increase"),
+    "zero direction": (bad({"instruments.0.direction": [0, 0, 0]}), "instruments.0.direction", "zero vector"),
+}
+
+
+@pytest.mark.parametrize("case", list(BAD_SCENES), ids=list(BAD_SCENES))
+def test_bad_scene_exits_2_with_one_line(tmp_path, capsys, case):
+    scene, key, message = BAD_SCENES[case]
+    path = write_scene(tmp_path, scene)
+    code, lines = run_cli(capsys, path, "--out", tmp_path / "out")
+    assert code == 2
+    assert len(lines) == 1, lines
+    assert lines[0].startswith(f"error: {path}: {key}: "), lines[0]
+    assert message in lines[0]
+    assert not (tmp_path / "out" / "state.npz").exists()
+
+
+def test_yaml_syntax_error_names_the_line(tmp_path, capsys):
+    path = write_scene(tmp_path, text="name: x\nmesh: meshes/patch.obj\ntissue: {preset: liver\n")
+    code, lines = run_cli(capsys, path, "--out", tmp_path / "out")
+    assert code == 2 and len(lines) == 1
+    assert lines[0].startswith(f"error: {path}: line ") and "YAML syntax error" in lines[0]
+
+
+def test_unreadable_mesh_file(tmp_path, capsys):
+    (tmp_path / "broken.obj").write_bytes(b"\x00\x01 garbage \xff" * 10)
+    path = write_scene(tmp_path, bad({"mesh": str(tmp_path / "broken.obj")}))
+    code, lines = run_cli(capsys, path, "--out", tmp_path / "out")
+    assert code == 2 and len(lines) == 1
+    assert lines[0].startswith(f"error: {path}: mesh: ")
+
+
+def test_open_instrument_mesh_is_refused(tmp_path, capsys):
+    import trimesh
+
+    box = trimesh.creation.box()
+    open_box = trimesh.Trimesh(box.vertices, box.faces[2:])  # one side removed: no inside
+    open_box.export(tmp_path / "sheet.obj")
+    path = write_scene(tmp_path, bad({"instruments.0.shape": {"type": "mesh", "file": str(tmp_path / "sheet.obj")}}))
+    code, lines = run_cli(capsys, path, "--out", tmp_path / "out")
+    assert code == 2 and len(lines) == 1
+    assert lines[0].startswith(f"error: {path}: instruments.0.shape.file: ") and "closed" in lines[0]
+
+
+@pytest.mark.parametrize("override, key", [
+    ("tissue.conductivity_w_mk=abc", "tissue.conductivity_w_mk"),
+    ("instruments.5.tip_temperature_c=300", "instruments.5"),
+    ("cautery.contact_distanse_mm=1", "cautery.contact_distanse_mm"),
+    ("nokey", "nokey"),
+])
+def test_bad_override(tmp_path, capsys, override, key):
+    path = write_scene(tmp_path)
+    code, lines = run_cli(capsys, path, "--out", tmp_path / "out", "--set", override)
+    assert code == 2 and len(lines) == 1
+    assert lines[0].startswith(f"error: {path}: {key}"), lines[0]
+
+
+def test_missing_scene_file(tmp_path, capsys):
+    code, lines = run_cli(capsys, tmp_path / "nope.yaml", "--out", tmp_path / "out")
+    assert code == 2 and len(lines) == 1 and "scene file not found" in lines[0]
+
+
+def test_no_traceback_from_a_real_process(tmp_path):
+    path = write_scene(tmp_path, bad({"tissue": {"conductivity_w_mk": -1.0}}))
+    result = subprocess.run([sys.executable, "-m", "lab", "run", str(path), "--out", str(tmp_path / "out")], capture_output=True, text=True, cwd=REPO_ROOT)
+    assert result.returncode == 2
+    assert result.stderr.strip().splitlines() == [result.stderr.strip()]
+    assert "Traceback" not in result.stderr and "tissue.conductivity_w_mk" in result.stderr
+
+
+def test_override_changes_the_run(tmp_path, capsys):
+    path = write_scene(tmp_path)
+    assert run_cli(capsys, path, "--out", tmp_path / "hot")[0] == 0
+    assert run_cli(capsys, path, "--out", tmp_path / "cool", "--set", "instruments.0.tip_temperature_c=60")[0] == 0
+    hot = json.loads((tmp_path / "hot" / "metrics.json").read_text())["cautery"]["max_temperature_c"]
+    cool = json.loads((tmp_path / "cool" / "metrics.json").read_text())["cautery"]["max_temperature_c"]
+    assert hot > 100.0 and 37.0 <= cool <= 60.0
+
+
+def test_default_scene_writes_every_output_and_is_deterministic(tmp_path, capsys):
+    outputs = []
+    for run in ("a", "b"):
+        out = tmp_path / run
+        code, _ = run_cli(capsys, DEFAULT_SCENE, "--out", out, "--frames-every", "2", "--set", "texture_size=256")
+        assert code == 0
+        outputs.append(out)
+    out = outputs[0]
+    metrics = json.loads((out / "metrics.json").read_text())
+    for key in ("scene", "duration_s", "steps", "wall_s", "models", "finite", "cautery"):
+        assert key in metrics
+    assert metrics["finite"] is True and metrics["steps"] == 800
+    assert metrics["cautery"]["coagulated_area_mm2"] > 20.0  # the scripted strokes really touch the patch
+    assert metrics["cautery"]["charred_area_mm2"] > 0.0
+    assert sorted(p.name for p in (out / "frames").iterdir()) == [f"frame_{i:05d}.png" for i in range(5)]
+    from PIL import Image
+
+    assert Image.open(out / "final.png").size == (256, 256)
+    with np.load(out / "state.npz") as state:
+        assert state["temperature_c"].shape == (256, 256) and state["texel_position_mm"].shape == (256, 256, 3)
+        assert set(state.files) >= {"temperature_c", "damage_omega", "char", "texel_position_mm", "texel_mask"}
+    assert (outputs[0] / "state.npz").read_bytes() == (outputs[1] / "state.npz").read_bytes()

@@ -1,6 +1,7 @@
-"""CLI: python -m lab run SCENE --out DIR [...]. Exit codes: 0 done, 2 bad input, 3 non-finite simulation."""
+"""CLI: python -m lab run SCENE --out DIR [...] | bench [--quick] --out DIR. Exit codes: 0 done, 2 bad input, 3 non-finite simulation."""
 import argparse
 import sys
+from pathlib import Path
 
 from sims.backend import ARCH_CHOICES, ArchUnavailable
 from sims.config import ConfigError
@@ -27,11 +28,21 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a scene key, e.g. tissue.conductivity_w_mk=0.6 or instruments.0.tip_temperature_c=300")
     run.add_argument("--arch", choices=ARCH_CHOICES, default="auto", help="Taichi device: auto (GPU if present, else CPU), cpu or gpu")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
+    bench = commands.add_parser("bench", help="measure speed next to error and write DIR/report.md and DIR/results.json")
+    bench.add_argument("--quick", action="store_true", help="fewer steps (about a minute)")
+    bench.add_argument("--out", required=True, help="output folder")
+    bench.add_argument("--arch", choices=ARCH_CHOICES, default="auto", help="Taichi device")
     return parser
 
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
+    if args.command == "bench":
+        from lab import bench
+
+        bench.run(args.out, quick=args.quick, arch=args.arch)
+        print((Path(args.out) / "report.md").read_text())
+        return 0
     from lab import runner
     from sims.scene import Scene
 

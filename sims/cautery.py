@@ -84,6 +84,7 @@ class Cautery:
         self.weights.from_numpy(weights)
         self.position.from_numpy(surface.position_mm)
         self.current = 0
+        self._idle_contact = None  # parameters of the last contact pass made with no tool energized
         self.reset()
 
     # --- parameters ---------------------------------------------------------------------------
@@ -130,7 +131,10 @@ class Cautery:
     def step(self, dt_s: float) -> None:
         """Advance dt_s seconds: contact field from the current instrument poses, then heat substeps."""
         t, c = self.tissue, self.cautery
-        self._contact(self.perfusion_rate_1_s, t["body_temperature_c"], self.contact_rate_1_s, c["contact_distance_mm"])
+        contact = (self.perfusion_rate_1_s, t["body_temperature_c"], self.contact_rate_1_s, c["contact_distance_mm"])
+        if self.instruments.any_energized or contact != self._idle_contact:
+            self._contact(*contact)
+            self._idle_contact = None if self.instruments.any_energized else contact
         count = self.substeps(dt_s)
         sub = dt_s / count
         ea_r = t["activation_energy_j_mol"] / GAS_CONSTANT
@@ -146,7 +150,8 @@ class Cautery:
             weighted = perfusion * body
             if self.mask[r, c]:
                 for k in range(self.instruments.count):
-                    if self.instruments.energized[k]:
+                    near = (self.position[r, c] - self.instruments.position[k]).norm() < self.instruments.extent[k] + reach
+                    if self.instruments.energized[k] and near:
                         d = self.instruments.distance(k, self.position[r, c])
                         w = 0.0
                         if d <= 0.0:

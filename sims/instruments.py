@@ -191,6 +191,7 @@ class InstrumentFields:
         self.rotation = ti.Matrix.field(3, 3, ti.f32, count)  # rows: local axes in world coordinates
         self.tip_temperature = ti.field(ti.f32, count)       # C
         self.energized = ti.field(ti.i32, count)
+        self.extent = ti.field(ti.f32, count)                # mm, radius of a ball about the origin holding the shape
         grids = [None] * len(instruments)
         for index, instrument in enumerate(instruments):
             shape = instrument.shape
@@ -204,21 +205,26 @@ class InstrumentFields:
         self.sdf_cells = ti.Vector.field(3, ti.i32, count)
         sdf = np.full((count,) + cells, 1e3, np.float32)
         origin, spacing, cell_counts = np.zeros((count, 3), np.float32), np.ones(count, np.float32), np.full((count, 3), 2, np.int32)
-        codes, dims_arr = np.zeros(count, np.int32), np.zeros((count, 4), np.float32)
+        codes, dims_arr, extent = np.zeros(count, np.int32), np.zeros((count, 4), np.float32), np.zeros(count, np.float32)
         for index, instrument in enumerate(instruments):
             shape = instrument.shape
             codes[index] = SHAPE_CODES[shape["type"]]
             dims_arr[index] = shape["radius_mm"], shape["length_mm"], shape["width_mm"], shape["thickness_mm"]
+            radius, length, width, thickness = dims_arr[index]
+            extent[index] = {"ball": radius, "capsule": length + radius, "spatula": np.linalg.norm([width / 2, thickness / 2, length])}.get(shape["type"], 0.0)
             if grids[index] is not None:
                 grid, origin[index], spacing[index] = grids[index]
                 sdf[(index,) + tuple(slice(0, n) for n in grid.shape)] = grid
                 cell_counts[index] = grid.shape
+                corners = origin[index] + np.array(np.meshgrid(*[[0, n - 1] for n in grid.shape])).reshape(3, -1).T * spacing[index]
+                extent[index] = np.linalg.norm(corners, axis=1).max()
         self.shape_code.from_numpy(codes)
         self.dims.from_numpy(dims_arr)
         self.sdf.from_numpy(sdf)
         self.sdf_origin.from_numpy(origin)
         self.sdf_spacing.from_numpy(spacing)
         self.sdf_cells.from_numpy(cell_counts)
+        self.extent.from_numpy(extent)
         self.poses = []
         self.set_time(0.0)
 
@@ -240,6 +246,7 @@ class InstrumentFields:
         self.tip_temperature.from_numpy(temperature)
         self.energized.from_numpy(energized)
         self.poses = poses
+        self.any_energized = bool(energized.any())
 
     @ti.func
     def distance(self, k, world):

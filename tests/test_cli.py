@@ -163,3 +163,35 @@ def test_default_scene_writes_every_output_and_is_deterministic(tmp_path, capsys
         assert state["temperature_c"].shape == (256, 256) and state["texel_position_mm"].shape == (256, 256, 3)
         assert set(state.files) >= {"temperature_c", "damage_omega", "char", "texel_position_mm", "texel_mask"}
     assert (outputs[0] / "state.npz").read_bytes() == (outputs[1] / "state.npz").read_bytes()
+
+
+def test_arch_auto_runs_without_a_gpu_and_gpu_says_why(tmp_path):
+    """A fresh process: auto falls back to the CPU without crashing; gpu either runs on one or exits 2."""
+    path = write_scene(tmp_path)
+    auto = subprocess.run([sys.executable, "-m", "lab", "run", str(path), "--out", str(tmp_path / "auto"), "--arch", "auto"], capture_output=True, text=True, cwd=REPO_ROOT)
+    assert auto.returncode == 0, auto.stderr
+    assert json.loads((tmp_path / "auto" / "metrics.json").read_text())["arch"] in ("x64", "arm64", "cuda", "vulkan")
+    gpu = subprocess.run([sys.executable, "-m", "lab", "run", str(path), "--out", str(tmp_path / "gpu"), "--arch", "gpu"], capture_output=True, text=True, cwd=REPO_ROOT)
+    if gpu.returncode == 0:
+        assert json.loads((tmp_path / "gpu" / "metrics.json").read_text())["arch"] in ("cuda", "vulkan")
+    else:
+        assert gpu.returncode == 2 and gpu.stderr.strip().splitlines() == [f"error: {path}: --arch: --arch gpu: no CUDA or Vulkan device found (use --arch auto or cpu)"]
+
+
+def test_non_finite_state_stops_the_run_naming_field_and_step(tmp_path, monkeypatch, capsys):
+    from sims.scene import Scene
+
+    original_step = Scene.step
+
+    def poisoned_step(scene):
+        original_step(scene)
+        if scene.steps == 20:
+            field = scene.cautery.temperature_c()
+            field[10, 10] = np.nan
+            scene.cautery.set_temperature(field)
+
+    monkeypatch.setattr(Scene, "step", poisoned_step)
+    path = write_scene(tmp_path)
+    code, lines = run_cli(capsys, path, "--out", tmp_path / "out")
+    assert code == 3 and len(lines) == 1
+    assert "temperature_c became non-finite at step 50" in lines[0]

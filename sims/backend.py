@@ -36,6 +36,8 @@ def init(arch: str = "auto") -> str:
     import taichi as ti
 
     candidates = ti.cpu if arch == "cpu" else [ti.cuda, ti.vulkan]
+    threads = os.environ.get("TISSUE_LAB_THREADS")  # CPU threads (default: all cores)
+    extra = {"cpu_max_num_threads": int(threads)} if threads else {}
     ti.set_logging_level(ti.ERROR)  # the fallback to CPU is expected, not a warning for the user
     ti.init(
         arch=candidates,
@@ -43,6 +45,7 @@ def init(arch: str = "auto") -> str:
         offline_cache_file_path=str(cache_dir() / "taichi"),
         default_fp=ti.f32,
         log_level=ti.ERROR,
+        **extra,
     )
     _started_arch = ti.lang.impl.current_cfg().arch.name
     if arch == "gpu" and _started_arch in ("x64", "arm64"):

@@ -1,16 +1,23 @@
-"""Display: blend the tissue stage textures by the damage fields into one RGB texture (H, W, 3) uint8.
+"""Display: tissue stages blended by the damage fields, blood over them -> one RGB texture (H, W, 3) uint8.
 
-A stage table (scene key look.stages) drives the blend: the first stage is the base look; each
-later stage is mixed in with weight smoothstep(from, to, field), where field is one of
-coagulation (1 - exp(-Omega)), char, omega or temperature_c. Reordering or adding stages needs
-no code. Texels outside the UV charts take the colour of the nearest surface texel, so texture
-filtering in a viewer never bleeds background into the mesh.
+A stage table (scene key look.stages) drives the tissue: the first stage is the base look; each
+later stage is mixed in with weight opacity * smoothstep(from, to, field), where field is one of
+coagulation (1 - exp(-Omega)), char, omega or temperature_c. Reordering or adding stages needs no
+code. Blood covers the tissue where its film is thick enough: coverage is a smoothstep of the
+displayed film thickness between BLOOD_EDGE fractions of the rest film (a defined, anti-aliased
+edge rather than the glow ring of a plain blur), and its colour darkens from fresh red at the rest
+film to near black-red at BLOOD_DARK_FILMS films. Texels outside the UV charts take the colour of the
+nearest surface texel, so texture filtering in a viewer never bleeds background into the mesh.
 """
 import numpy as np
 import taichi as ti
 from PIL import Image
 
 FIELD_CODES = {"coagulation": 0, "char": 1, "omega": 2, "temperature_c": 3}
+BLOOD_EDGE = (0.25, 0.6)              # film fractions where coverage goes from 0 to 1
+BLOOD_DARK_FILMS = 4.0                # film multiples at which blood reaches its darkest colour
+BLOOD_THIN_RGB = (0.55, 0.04, 0.04)   # fresh blood film over tissue
+BLOOD_THICK_RGB = (0.20, 0.01, 0.015)  # pooled blood
 
 
 class TextureError(ValueError):
@@ -33,14 +40,9 @@ def load_texture(path, size: int, tile: int = 1) -> np.ndarray:
     return np.asarray(tiled, np.float32) / 255.0
 
 
-def fill_gutters(rgb: np.ndarray, fill_index: np.ndarray) -> np.ndarray:
-    """Give texels outside the charts the colour of the nearest surface texel: (H, W, C) -> (H, W, C)."""
-    return rgb.reshape(-1, rgb.shape[-1])[fill_index]
-
-
 @ti.data_oriented
 class Composer:
-    """Stage textures in one field; compose() blends them from the cautery fields."""
+    """Stage textures in one field; tissue() blends them from the cautery fields, rgb() adds blood."""
 
     def __init__(self, stages: list, textures: list, fill_index: np.ndarray):
         count = len(stages)
@@ -54,32 +56,64 @@ class Composer:
         self.ranges.from_numpy(np.array([[stage["from"], stage["to"], stage["opacity"]] for stage in stages], np.float32))
         self.fill = ti.field(ti.i32, (height, width))
         self.fill.from_numpy(fill_index.astype(np.int32))
+        self.color = ti.Vector.field(3, ti.f32, (height, width))  # tissue colour
+        self.color.from_numpy(textures[0].astype(np.float32))
         self.rgb = ti.Vector.field(3, ti.u8, (height, width))
         self.count = count
 
-    def compose(self, temperature, omega, char) -> np.ndarray:
-        """(H, W, 3) uint8 from Taichi fields T (C), Omega, char."""
-        self._blend(temperature, omega, char)
+    def compose(self, cautery=None, bleeding=None) -> np.ndarray:
+        """(H, W, 3) uint8 from the models present (each may be None)."""
+        if cautery is not None:
+            self._tissue(cautery.temperature[cautery.current], cautery.omega, cautery.char)
+        if bleeding is not None:
+            self._with_blood(bleeding.thickness, bleeding.params["film_thickness_mm"])
+        else:
+            self._plain()
         return self.rgb.to_numpy()
 
     @ti.kernel
-    def _blend(self, temperature: ti.template(), omega: ti.template(), char: ti.template()):
-        width = self.fill.shape[1]
-        for r, c in self.fill:
-            source = self.fill[r, c]
-            sr, sc = source // width, source % width
-            color = self.textures[0, sr, sc]
+    def _tissue(self, temperature: ti.template(), omega: ti.template(), char: ti.template()):
+        for r, c in self.color:
+            color = self.textures[0, r, c]
             for s in range(1, self.count):
                 code = self.codes[s]
-                value = temperature[sr, sc]
+                value = temperature[r, c]
                 if code == 0:
-                    value = 1.0 - ti.exp(-omega[sr, sc])
+                    value = 1.0 - ti.exp(-omega[r, c])
                 elif code == 1:
-                    value = char[sr, sc]
+                    value = char[r, c]
                 elif code == 2:
-                    value = omega[sr, sc]
+                    value = omega[r, c]
                 lo, hi = self.ranges[s][0], self.ranges[s][1]
                 x = ti.min(ti.max((value - lo) / (hi - lo), 0.0), 1.0)
                 weight = x * x * (3.0 - 2.0 * x) * self.ranges[s][2]
-                color = color * (1.0 - weight) + self.textures[s, sr, sc] * weight
-            self.rgb[r, c] = ti.cast(ti.min(ti.max(color * 255.0 + 0.5, 0.0), 255.0), ti.u8)
+                color = color * (1.0 - weight) + self.textures[s, r, c] * weight
+            self.color[r, c] = color
+
+    @ti.func
+    def _write(self, r, c, color):
+        self.rgb[r, c] = ti.cast(ti.min(ti.max(color * 255.0 + 0.5, 0.0), 255.0), ti.u8)
+
+    @ti.func
+    def _source(self, r, c):
+        width = self.fill.shape[1]
+        source = self.fill[r, c]
+        return source // width, source % width
+
+    @ti.kernel
+    def _plain(self):
+        for r, c in self.rgb:
+            sr, sc = self._source(r, c)
+            self._write(r, c, self.color[sr, sc])
+
+    @ti.kernel
+    def _with_blood(self, thickness: ti.template(), film: ti.f32):
+        thin, thick = ti.Vector(BLOOD_THIN_RGB), ti.Vector(BLOOD_THICK_RGB)
+        for r, c in self.rgb:
+            sr, sc = self._source(r, c)
+            films = thickness[sr, sc] / film
+            x = ti.min(ti.max((films - BLOOD_EDGE[0]) / (BLOOD_EDGE[1] - BLOOD_EDGE[0]), 0.0), 1.0)
+            cover = x * x * (3.0 - 2.0 * x)
+            depth = ti.min(ti.max((films - 1.0) / (BLOOD_DARK_FILMS - 1.0), 0.0), 1.0)
+            blood = thin * (1.0 - depth) + thick * depth
+            self._write(r, c, self.color[sr, sc] * (1.0 - cover) + blood * cover)

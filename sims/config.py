@@ -11,7 +11,7 @@ import yaml
 from sims import params
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
-MODELS = ("cautery",)
+MODELS = ("cautery", "bleeding")
 STAGE_FIELDS = ("coagulation", "char", "omega", "temperature_c")
 SHAPE_TYPES = ("ball", "capsule", "spatula", "mesh")
 DEFAULT_STAGES = [
@@ -112,6 +112,16 @@ class Vector:
         return [float(item) for item in value]
 
 
+class Optional:
+    """A mapping that is absent (None) unless the scene gives it; then validated by `node`."""
+
+    def __init__(self, node):
+        self.node, self.default = node, None
+
+    def validate(self, value, key, ctx):
+        return self.node.validate(value, key, ctx)
+
+
 class ListOf:
     def __init__(self, item, default=(), max_len=64):
         self.item, self.default, self.max_len = item, list(default), max_len
@@ -184,6 +194,12 @@ def _check_instrument(instrument, key, ctx):
     _check_path(instrument["path"], _join(key, "path"), ctx)
 
 
+def _check_bleed_point(point, key, ctx):
+    _check_path(point["path"], _join(key, "path"), ctx)
+    if point["stop_s"] is not None and point["stop_s"] < point["start_s"]:
+        ctx.fail(_join(key, "stop_s"), f"must not be before start_s ({point['start_s']})")
+
+
 def _check_stages(stages, key, ctx):
     if not stages:
         ctx.fail(key, "needs at least one stage (the healthy look)")
@@ -208,7 +224,6 @@ _TIME = params.ParamSpec("t_s", "s", 0.0, 0.0, 1.0e5, "")
 _FROM_TO = params.ParamSpec("threshold", "", 0.0, -1.0e4, 1.0e4, "")
 _TILE = params.ParamSpec("tile", "repeats", 1, 1, 64, "", integer=True)
 _OPACITY = params.ParamSpec("opacity", "", 1.0, 0.0, 1.0, "")
-_RATE = params.ParamSpec("rate_ml_s", "ml/s", 0.02, 0.0, 10.0, "")
 
 _KEYFRAME = Record(
     {
@@ -235,6 +250,7 @@ _INSTRUMENT = Record(
         "direction": Vector([0.0, 0.0, -1.0], nonzero=True),
         "energized": Boolean(False),
         "path": ListOf(_KEYFRAME, max_len=10000),
+        "suction": Optional(Record(_numbers(params.SUCTION))),
     },
     required=("name", "shape"),
     check=_check_instrument,
@@ -253,15 +269,22 @@ _STAGE = Record(
     required=("name", "texture"),
 )
 
+_BLEED_KEYFRAME = Record(
+    {"t_s": Number(_TIME), "position_mm": Vector(None), "rate_ml_s": Number(params.BLEED_POINT["rate_ml_s"], default=None)},
+    required=("t_s",),
+)
+
 _BLEED_POINT = Record(
     {
         "name": Text(),
         "position_mm": Vector(None),
-        "rate_ml_s": Number(_RATE),
+        **_numbers(params.BLEED_POINT),
         "start_s": Number(_TIME, default=0.0),
         "stop_s": Number(_TIME, default=None),
+        "path": ListOf(_BLEED_KEYFRAME, max_len=10000),
     },
     required=("name", "position_mm"),
+    check=lambda point, key, ctx: _check_bleed_point(point, key, ctx),
 )
 
 SCENE = Record(
@@ -273,6 +296,7 @@ SCENE = Record(
         "gravity_mm_s2": Vector([0.0, 0.0, -9810.0]),
         "tissue": Record({"preset": Text("liver", choices=tuple(params.TISSUE_PRESETS)), **_numbers(params.TISSUE, default=None)}, check=_check_tissue),
         "cautery": Record(_numbers(params.CAUTERY)),
+        "bleeding": Record(_numbers(params.BLEEDING)),
         "look": Record({"stages": ListOf(_STAGE, default=DEFAULT_STAGES, max_len=8)}, check=lambda look, key, ctx: _check_stages(look["stages"], _join(key, "stages"), ctx)),
         "instruments": ListOf(_INSTRUMENT, max_len=8),
         "bleed_points": ListOf(_BLEED_POINT),

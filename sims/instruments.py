@@ -52,11 +52,12 @@ class Instrument:
     shape: dict
     base: Pose
     path: list = field(default_factory=list)
+    suction: dict | None = None  # {radius_mm, rate_ml_s}: removes blood while the instrument is on
 
     @classmethod
     def from_config(cls, item: dict) -> "Instrument":
         base = Pose(np.array(item["position_mm"]), np.array(item["direction"]), item["roll_deg"], item["energized"], item["tip_temperature_c"])
-        return cls(item["name"], item["shape"], base, item["path"])
+        return cls(item["name"], item["shape"], base, item["path"], item.get("suction"))
 
     def pose_at(self, t_s: float) -> Pose:
         """Pose at time t: keyframe values interpolated linearly (energized holds its last value)."""

@@ -74,6 +74,37 @@ SHAPE = _table(
     ParamSpec("sdf_resolution", "cells", 40, 8, 128, "mesh instrument distance-grid cells along the longest side", integer=True),
 )
 
+BLEEDING = _table(
+    ParamSpec("particle_spacing_mm", "mm", 0.5, 0.1, 3.0, "rest spacing of blood particles; sets the volume each carries"),
+    ParamSpec("interaction_radius_mm", "mm", 1.5, 0.2, 10.0, "SPH interaction radius h"),
+    ParamSpec("film_thickness_mm", "mm", 0.2, 0.02, 2.0, "blood film thickness at rest density"),
+    ParamSpec("rest_density", "x lattice", 1.0, 0.2, 50.0, "rest density, in units of the density of a hexagonal lattice at the particle spacing"),
+    ParamSpec("stiffness_mm_s2", "mm/s^2", 2000.0, 0.0, 1.0e5, "pressure stiffness k (double density relaxation)"),
+    ParamSpec("near_stiffness_mm_s2", "mm/s^2", 2000.0, 0.0, 1.0e5, "near-pressure stiffness k_near"),
+    ParamSpec("viscosity_sigma_1_s", "1/s", 2.0, 0.0, 100.0, "linear viscosity impulse sigma"),
+    ParamSpec("viscosity_beta_s_mm", "s/mm", 0.05, 0.0, 10.0, "quadratic viscosity impulse beta"),
+    ParamSpec("blood_viscosity_mpa_s", "mPa s", 3.5, 0.0, 50.0, "dynamic viscosity; with the film thickness it sets the drag of the tissue on the film (Nusselt)"),
+    ParamSpec("blood_density_kg_m3", "kg/m^3", 1050.0, 900.0, 1200.0, "blood density"),
+    ParamSpec("inertia", "", 1.0, 0.0, 1.0, "traction factor I: velocity = I * displacement / dt"),
+    ParamSpec("max_speed_mm_s", "mm/s", 200.0, 1.0, 1.0e5, "velocity clamp"),
+    ParamSpec("pinning_density", "x rest", 0.0, 0.0, 1.0, "blood thinner than this (relative to rest density) is held by the tissue: a minimum amount before it moves"),
+    ParamSpec("clotting_rate_1_s", "1/s", 0.1, 0.0, 10.0, "how fast blood at rest clots and stops"),
+    ParamSpec("rest_speed_mm_s", "mm/s", 1.0, 0.0, 50.0, "blood slower than this counts as at rest for clotting"),
+    ParamSpec("lifetime_s", "s", 600.0, 0.1, 36000.0, "particles older than this expire"),
+    ParamSpec("substeps", "", 2, 1, 16, "fluid substeps per simulation step", integer=True),
+    ParamSpec("capacity", "particles", 0, 0, 2_000_000, "particle pool size; 0 sizes it from the bleed rates, duration and lifetime", integer=True),
+)
+
+BLEED_POINT = _table(
+    ParamSpec("rate_ml_s", "ml/s", 0.02, 0.0, 10.0, "bleeding rate before coagulation at the point"),
+    ParamSpec("radius_mm", "mm", 0.5, 0.0, 10.0, "radius of the disk new blood appears in"),
+)
+
+SUCTION = _table(
+    ParamSpec("radius_mm", "mm", 3.0, 0.1, 30.0, "suction reach from the instrument position"),
+    ParamSpec("rate_ml_s", "ml/s", 1.0, 0.0, 100.0, "largest volume removed per second"),
+)
+
 # Tissue presets: physical values (DESIGN section 7). Liver: Arrhenius after the widely used
 # liver values; skin: Henriques' A and Ea with IT'IS-database thermal properties.
 TISSUE_PRESETS: dict[str, dict[str, float]] = {

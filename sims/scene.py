@@ -14,7 +14,7 @@ class Scene:
     """Everything a browser or a script does with a scene. Time advances in fixed steps of time_step_s."""
 
     def __init__(self, config: dict, arch: str = "auto"):
-        from sims.compose import TextureError, fill_gutters, load_texture
+        from sims.compose import TextureError, load_texture
         from sims.surface import MeshError, build_surface, load_mesh
 
         self.config = config
@@ -46,17 +46,29 @@ class Scene:
             raise ConfigError(self.file, "mesh", f"{config['mesh']}: {exc}") from None
         self.models = list(config["models"])
         self.time_s, self.steps = 0.0, 0
-        self.cautery = None
-        self._base_rgb = fill_gutters((textures[0] * 255 + 0.5).astype(np.uint8), self.surface.fill_index)
+        from sims.compose import Composer
+        from sims.instruments import Instrument
+
+        self.instruments = [Instrument.from_config(item) for item in config["instruments"]]
+        self.cautery = self.bleeding = None
         if "cautery" in self.models:
             from sims.cautery import Cautery
-            from sims.compose import Composer
-            from sims.instruments import Instrument, InstrumentFields
+            from sims.instruments import InstrumentFields
 
-            self.instruments = [Instrument.from_config(item) for item in config["instruments"]]
             self.instrument_fields = InstrumentFields(self.instruments)
             self.cautery = Cautery(self.surface, config["tissue"], config["cautery"], self.instrument_fields)
-            self.composer = Composer(config["look"]["stages"], textures, self.surface.fill_index)
+        if "bleeding" in self.models:
+            from scipy.spatial import cKDTree
+
+            from sims.sph import Bleeding, BleedPoint, auto_capacity
+
+            capacity = auto_capacity(config["bleed_points"], config["bleeding"], config["duration_s"])
+            self.bleeding = Bleeding(self.surface, config["bleeding"], config["gravity_mm_s2"], capacity)
+            self.bleed_points = [BleedPoint(item) for item in config["bleed_points"]]
+            rows, cols = np.nonzero(self.surface.mask)
+            self._texels = np.stack([rows, cols], axis=1)
+            self._texel_tree = cKDTree(self.surface.position_mm[rows, cols])
+        self.composer = Composer(config["look"]["stages"], textures, self.surface.fill_index)
 
     @classmethod
     def from_file(cls, path, overrides=(), arch: str = "auto") -> "Scene":
@@ -73,30 +85,73 @@ class Scene:
 
     def step(self) -> None:
         """Advance one time step of time_step_s."""
+        dt = self.time_step_s
         if self.cautery is not None:
             self.instrument_fields.set_time(self.time_s)
-            self.cautery.step(self.time_step_s)
+            self.cautery.step(dt)
+        if self.bleeding is not None:
+            self._bleed(dt)
         self.steps += 1
-        self.time_s = self.steps * self.time_step_s
+        self.time_s = self.steps * dt
+
+    def texel_near(self, position_mm) -> tuple[int, int]:
+        """(row, col) of the surface texel nearest to a world position (mm)."""
+        _, index = self._texel_tree.query(np.asarray(position_mm, np.float64))
+        return tuple(int(v) for v in self._texels[index])
+
+    def coagulated_fraction(self, texel_rc) -> float:
+        """1 - exp(-Omega) at a texel; 0 without the cautery model."""
+        if self.cautery is None:
+            return 0.0
+        return float(1.0 - np.exp(-float(self.cautery.omega[texel_rc])))
+
+    def bleed_rates(self) -> dict:
+        """Current rate (ml/s) of every bleed point, after coagulation of the tissue under it."""
+        rates = {}
+        for point in self.bleed_points:
+            texel = self.texel_near(point.position_at(self.time_s))
+            rates[point.name] = point.rate_at(self.time_s) * (1.0 - self.coagulated_fraction(texel))
+        return rates
+
+    def _bleed(self, dt: float) -> None:
+        for point in self.bleed_points:
+            rate = point.rate_at(self.time_s)
+            if rate > 0.0:
+                texel = self.texel_near(point.position_at(self.time_s))
+                rate *= 1.0 - self.coagulated_fraction(texel)
+                self.bleeding.spawn_rate(point.name, texel, rate, dt, point.item["radius_mm"])
+        suction = []
+        for instrument in self.instruments:
+            if instrument.suction is not None:
+                pose = instrument.pose_at(self.time_s)
+                if pose.energized:
+                    suction.append((pose.position_mm, instrument.suction["radius_mm"], instrument.suction["rate_ml_s"]))
+        self.bleeding.step(dt, suction)
 
     def reset(self) -> None:
         self.time_s, self.steps = 0.0, 0
         if self.cautery is not None:
             self.cautery.reset()
+        if self.bleeding is not None:
+            self.bleeding.reset()
 
     # --- outputs ------------------------------------------------------------------------------
-    def composite(self) -> np.ndarray:
-        """The display texture (H, W, 3) uint8, image orientation (row 0 = v 1)."""
-        if self.cautery is None:
-            return self._base_rgb
-        c = self.cautery
-        return self.composer.compose(c.temperature[c.current], c.omega, c.char)
+    def composite(self, fade: float = 0.0) -> np.ndarray:
+        """The display texture (H, W, 3) uint8, image orientation (row 0 = v 1).
+
+        fade: temporal fade of the blood film display (0 shows this step only; 0.8 keeps traces).
+        """
+        if self.bleeding is not None:
+            self.bleeding.update_display(fade)
+        return self.composer.compose(self.cautery, self.bleeding)
 
     def state_arrays(self) -> dict:
         """Arrays of DESIGN section 4 for the models this scene runs."""
         state = {"texel_position_mm": self.surface.position_mm, "texel_mask": self.surface.mask}
         if self.cautery is not None:
             state.update(temperature_c=self.cautery.temperature_c(), damage_omega=self.cautery.damage_omega(), char=self.cautery.char_level())
+        if self.bleeding is not None:
+            state.update(self.bleeding.particle_arrays())
         return state
 
     def non_finite_field(self) -> str | None:
@@ -110,6 +165,14 @@ class Scene:
         result = {"scene": self.name, "duration_s": self.time_s, "steps": self.steps, "models": self.models, "arch": self.arch}
         if self.cautery is not None:
             result["cautery"] = {**self.cautery.metrics(), "heat_substeps_per_step": self.cautery.substeps(self.time_step_s)}
+        if self.bleeding is not None:
+            result["bleeding"] = {
+                **self.bleeding.accounting(),
+                "blood_area_mm2": self.bleeding.blood_area_mm2(),
+                "capacity": self.bleeding.capacity,
+                "particle_volume_ml": self.bleeding.particle_volume_ml,
+                "bleed_rates_ml_s": self.bleed_rates(),
+            }
         return result
 
 

@@ -1,0 +1,623 @@
+"""Blood: a 2D particle fluid in the texture space of the tissue (Clavet et al. 2005, no springs).
+
+Particles live in grid coordinates of the texel maps (x = column, y = row, one unit per texel).
+Every length goes through the surface metric G = J^T J (J = [dP/dx dP/dy], mm per texel), so
+spacing, interaction radius, speeds and gravity are in millimetres whatever the UV stretch:
+- pair distance r = sqrt(d^T G d) with G averaged over the pair, d the grid offset;
+- gravity in grid units a = G^-1 J^T g (the tangential part of g, exactly g sin(theta) on an incline);
+- a physical displacement of length s along a pair becomes s / r * d in the grid.
+
+One step (substepped): gravity with Nusselt film drag (exact exponential), advance, neighbour grid
+by counting sort, density and near density, double density relaxation (its displacement damped by
+the same drag, so pressure and gravity balance alike at any substep count), velocity from displacement
+(inertia factor I, speed clamp), clotting, viscosity impulses (sigma, beta), removal. Every kernel
+gathers from neighbours and writes only its own particle; the counting sort scatters serially in
+particle order and the pool is compacted serially, so results are bitwise identical across runs and
+thread counts. Work per particle is capped (MAX_NEIGHBOURS in range, MAX_CANDIDATES examined, lowest indices
+first), so dense clumps cost bounded time.
+
+Accounting: spawned = alive + suctioned + left_surface + expired, exactly, at every step.
+"""
+import math
+
+import numpy as np
+import taichi as ti
+
+ALIVE, SUCTIONED, LEFT_SURFACE, EXPIRED = 0, 1, 2, 3
+MAX_NEIGHBOURS = 64         # neighbours in range that one particle interacts with, at most
+MAX_CANDIDATES = 256        # particles one particle examines, at most (bounds the cost of dense clumps)
+MAX_SUCTION_TOOLS = 8
+MAX_RELAX_FRACTION = 0.5    # largest relaxation displacement per substep, in interaction radii
+SPLAT_SCALE = 1024          # fixed-point units of one particle in the splat grid (integer atomics: deterministic)
+KEYS = ("spawned", "suctioned", "left_surface", "expired", "dropped_pool_full")
+
+
+def lattice_density(spacing_mm: float, radius_mm: float) -> float:
+    """Clavet density sum (1 - r/h)^2 over the neighbours of a particle in a hexagonal lattice."""
+    reach = int(math.ceil(radius_mm / spacing_mm)) + 1
+    total = 0.0
+    for i in range(-reach, reach + 1):
+        for j in range(-reach, reach + 1):
+            x, y = spacing_mm * (i + 0.5 * j), spacing_mm * j * math.sqrt(3.0) / 2.0
+            r = math.hypot(x, y)
+            if 0.0 < r < radius_mm:
+                total += (1.0 - r / radius_mm) ** 2
+    return total
+
+
+def particle_volume_ml(params: dict) -> float:
+    """Blood volume one particle carries: hexagonal cell area times film thickness."""
+    area_mm2 = math.sqrt(3.0) / 2.0 * params["particle_spacing_mm"] ** 2
+    return area_mm2 * params["film_thickness_mm"] * 1e-3
+
+
+@ti.func
+def _hash01(a, b):
+    """Deterministic pseudo-random number in [0, 1) from two u32 integers (PCG-style mix)."""
+    h = ti.cast(a, ti.u32) * ti.u32(747796405) + ti.cast(b, ti.u32) * ti.u32(2891336453) + ti.u32(277803737)
+    h = ((h >> ((h >> 28) + ti.u32(4))) ^ h) * ti.u32(277803737)
+    h = (h >> 22) ^ h
+    return ti.cast(h >> 8, ti.f32) / 16777216.0
+
+
+@ti.data_oriented
+class Bleeding:
+    """Particle pool, neighbour grid and display splat on a TissueSurface."""
+
+    def __init__(self, surface, params: dict, gravity_mm_s2, capacity: int):
+        self.surface, self.params = surface, params
+        height, width = surface.mask.shape
+        self.height, self.width, self.capacity = height, width, int(capacity)
+        ex, ey = surface.tangent_u, -surface.tangent_v
+        metric = surface.metric
+        self.mask = ti.field(ti.i32, (height, width))
+        self.mask.from_numpy(surface.mask.astype(np.int32))
+        self.texel_metric = ti.Vector.field(3, ti.f32, (height, width))   # gxx, gxy, gyy (mm^2 / texel^2)
+        self.texel_metric.from_numpy(np.stack([metric[..., 0, 0], metric[..., 0, 1], metric[..., 1, 1]], axis=-1))
+        self.texel_ex = ti.Vector.field(3, ti.f32, (height, width))       # dP/dx, mm per texel
+        self.texel_ey = ti.Vector.field(3, ti.f32, (height, width))       # dP/dy, mm per texel
+        self.texel_ex.from_numpy(ex)
+        self.texel_ey.from_numpy(ey)
+        self.texel_position = ti.Vector.field(3, ti.f32, (height, width))
+        self.texel_position.from_numpy(surface.position_mm)
+        self.texel_gravity = ti.Vector.field(2, ti.f32, (height, width))  # grid units / s^2
+        self.set_gravity(gravity_mm_s2)
+        # extent of the metric's unit ellipse in grid units: the cell size per mm of radius
+        det = np.where(surface.mask, metric[..., 0, 0] * metric[..., 1, 1] - metric[..., 0, 1] ** 2, np.nan)
+        self._cell_per_mm = (
+            float(np.nanpercentile(np.sqrt(metric[..., 1, 1] / det), 99.9)),
+            float(np.nanpercentile(np.sqrt(metric[..., 0, 0] / det), 99.9)),
+        )
+        cell = self._cell_size(params["interaction_radius_mm"])
+        self.cells_x, self.cells_y = max(1, math.ceil(width / cell[0])), max(1, math.ceil(height / cell[1]))
+        self.cell_size = ti.Vector.field(2, ti.f32, ())
+        self.cell_size[None] = cell
+        count = self.cells_x * self.cells_y
+        self.cell_count = ti.field(ti.i32, count)
+        self.cell_start = ti.field(ti.i32, count + 1)
+        capacity = max(self.capacity, 1)
+        self.pos = ti.Vector.field(2, ti.f32, capacity)
+        self.pos_prev = ti.Vector.field(2, ti.f32, capacity)
+        self.pos_new = ti.Vector.field(2, ti.f32, capacity)
+        self.vel = ti.Vector.field(2, ti.f32, capacity)
+        self.vel_new = ti.Vector.field(2, ti.f32, capacity)
+        self.metric = ti.Vector.field(3, ti.f32, capacity)     # metric at the particle's texel
+        self.density = ti.Vector.field(2, ti.f32, capacity)    # rho, rho_near
+        self.pressure = ti.Vector.field(2, ti.f32, capacity)   # P, P_near
+        self.drag = ti.field(ti.f32, capacity)                 # film drag rate (1/s) of this substep
+        self.age = ti.field(ti.f32, capacity)
+        self.clot = ti.field(ti.f32, capacity)
+        self.uid = ti.field(ti.i32, capacity)
+        self.fate = ti.field(ti.i32, capacity)                 # ALIVE or the reason it leaves
+        self.cell = ti.field(ti.i32, capacity)
+        self.sorted = ti.field(ti.i32, capacity)
+        self.counters = ti.field(ti.i32, 8)
+        self.alive_count = ti.field(ti.i32, ())
+        self.suction_tools = ti.Vector.field(4, ti.f32, MAX_SUCTION_TOOLS)  # x, y, z (mm), radius (mm)
+        self.suction_candidates = ti.field(ti.i32, ())
+        self.splat = ti.field(ti.i32, (height, width))
+        self.thickness = ti.field(ti.f32, (height, width))     # displayed film thickness, mm
+        self.blur_tmp = ti.field(ti.f32, (height, width))
+        self.texel_area = ti.field(ti.f32, (height, width))
+        self.texel_area.from_numpy(np.where(surface.mask, surface.texel_area_mm2, 1.0).astype(np.float32))
+        self.count = 0
+        self.step_index = 0
+        self._spawn_budget = {}
+        self._suction_budget = 0.0
+        self.pool_full_reported = False
+
+    def reset(self) -> None:
+        """Empty the pool and zero the counters."""
+        self.count, self.step_index = 0, 0
+        self.counters.fill(0)
+        self.thickness.fill(0.0)
+        self._spawn_budget, self._suction_budget = {}, 0.0
+        self.pool_full_reported = False
+
+    # --- set-up -------------------------------------------------------------------------------
+    def _cell_size(self, radius_mm: float):
+        return (max(1.0, radius_mm * self._cell_per_mm[0]), max(1.0, radius_mm * self._cell_per_mm[1]))
+
+    def set_gravity(self, gravity_mm_s2) -> None:
+        """Project world gravity (mm/s^2) onto the surface, per texel, in grid units: G^-1 J^T g."""
+        g = np.asarray(gravity_mm_s2, np.float64)
+        ex, ey = self.surface.tangent_u.astype(np.float64), -self.surface.tangent_v.astype(np.float64)
+        metric = self.surface.metric.astype(np.float64)
+        det = metric[..., 0, 0] * metric[..., 1, 1] - metric[..., 0, 1] ** 2
+        det = np.where(self.surface.mask & (det > 0), det, np.inf)
+        bx, by = ex @ g, ey @ g
+        ax = (metric[..., 1, 1] * bx - metric[..., 0, 1] * by) / det
+        ay = (metric[..., 0, 0] * by - metric[..., 0, 1] * bx) / det
+        self.texel_gravity.from_numpy(np.stack([ax, ay], axis=-1).astype(np.float32))
+
+    @property
+    def rest_density(self) -> float:
+        p = self.params
+        return p["rest_density"] * lattice_density(p["particle_spacing_mm"], p["interaction_radius_mm"])
+
+    @property
+    def particle_volume_ml(self) -> float:
+        return particle_volume_ml(self.params)
+
+    # --- spawning -----------------------------------------------------------------------------
+    def spawn(self, key, texel_rc, count: int, radius_mm: float) -> int:
+        """Add `count` particles in a disk of radius_mm around texel (row, col); returns how many fit."""
+        room = self.capacity - self.count
+        placed = max(0, min(count, room))
+        if placed < count:
+            self.counters[4] += count - placed
+            self.pool_full_reported = True
+        if placed:
+            first_uid = int(self.counters[0])
+            self._spawn(self.count, placed, first_uid, int(texel_rc[0]), int(texel_rc[1]), radius_mm)
+            self.counters[0] = first_uid + placed
+            self.count += placed
+        return placed
+
+    def spawn_rate(self, key, texel_rc, rate_ml_s: float, dt_s: float, radius_mm: float) -> int:
+        """Spawn blood at rate_ml_s for dt_s; fractional particles carry over between steps."""
+        budget = self._spawn_budget.get(key, 0.0) + rate_ml_s * dt_s / self.particle_volume_ml
+        whole = int(math.floor(budget))
+        self._spawn_budget[key] = budget - whole
+        return self.spawn(key, texel_rc, whole, radius_mm) if whole else 0
+
+    @ti.kernel
+    def _spawn(self, first: ti.i32, count: ti.i32, first_uid: ti.i32, row: ti.i32, col: ti.i32, radius_mm: ti.f32):
+        for k in range(count):
+            i = first + k
+            uid = first_uid + k
+            ex, ey = self.texel_ex[row, col], self.texel_ey[row, col]
+            m = self.texel_metric[row, col]
+            e1 = ex.normalized()
+            e2 = (ey - ey.dot(e1) * e1).normalized()
+            angle = 2.0 * math.pi * _hash01(ti.u32(uid), ti.u32(1))
+            reach = radius_mm * ti.sqrt(_hash01(ti.u32(uid), ti.u32(2)))
+            offset = reach * (ti.cos(angle) * e1 + ti.sin(angle) * e2)
+            b = ti.Vector([ex.dot(offset), ey.dot(offset)])
+            det = m[0] * m[2] - m[1] * m[1]
+            d = ti.Vector([m[2] * b[0] - m[1] * b[1], m[0] * b[1] - m[1] * b[0]]) / det
+            self.pos[i] = ti.Vector([col + 0.5, row + 0.5]) + d
+            self.pos_prev[i] = self.pos[i]
+            self.vel[i] = ti.Vector([0.0, 0.0])
+            self.density[i] = ti.Vector([0.0, 0.0])
+            self.age[i] = 0.0
+            self.clot[i] = 0.0
+            self.uid[i] = uid
+            self.fate[i] = ALIVE
+
+    # --- the step -----------------------------------------------------------------------------
+    def step(self, dt_s: float, suction: list = ()) -> None:
+        """Advance dt_s. suction: [(position_mm (3,), radius_mm, rate_ml_s)] of the tools switched on."""
+        p = self.params
+        self.cell_size[None] = self._cell_size_for(p["interaction_radius_mm"])
+        if self.count:
+            substeps = p["substeps"]
+            sub = dt_s / substeps
+            nu = p["blood_viscosity_mpa_s"] * 1e-3 / p["blood_density_kg_m3"] * 1e6  # mm^2/s
+            rest = self.rest_density
+            for _ in range(substeps):
+                self._predict(self.count, sub, nu, p["film_thickness_mm"], rest, p["pinning_density"] * rest, p["lifetime_s"])
+                self._bin(self.count)
+                self._sort(self.count, self.cells_x * self.cells_y)
+                self._density_pass(self.count, p["interaction_radius_mm"], rest, p["stiffness_mm_s2"], p["near_stiffness_mm_s2"])
+                self._relax(self.count, sub, p["interaction_radius_mm"])
+                self._finish(self.count, sub, p["inertia"], p["max_speed_mm_s"], p["clotting_rate_1_s"], p["rest_speed_mm_s"])
+                self._viscosity(self.count, sub, p["interaction_radius_mm"], p["viscosity_sigma_1_s"], p["viscosity_beta_s_mm"], p["max_speed_mm_s"])
+            self._apply_suction(dt_s, suction)
+            self._compact(self.count)
+            self.count = int(self.alive_count[None])
+        self.step_index += 1
+
+    def _cell_size_for(self, radius_mm: float):
+        """Cells never shrink below the size the grid was allocated for (a smaller radius stays correct)."""
+        wanted = self._cell_size(radius_mm)
+        return (max(wanted[0], self.width / self.cells_x), max(wanted[1], self.height / self.cells_y))
+
+    def _apply_suction(self, dt_s: float, suction) -> None:
+        tools = [tool for tool in suction if tool[2] > 0][:MAX_SUCTION_TOOLS]
+        if not tools:
+            self._suction_budget = 0.0
+            return
+        data = np.zeros((MAX_SUCTION_TOOLS, 4), np.float32)
+        for index, (position, radius, _) in enumerate(tools):
+            data[index] = [*position, radius]
+        self.suction_tools.from_numpy(data)
+        self._suction_budget += sum(rate for _, _, rate in tools) * dt_s / self.particle_volume_ml
+        self._count_suction(self.count, len(tools))
+        candidates = int(self.suction_candidates[None])
+        if candidates:
+            take = min(candidates, int(self._suction_budget))
+            self._suction_budget -= take
+            self._remove_suctioned(self.count, len(tools), take / candidates, self.step_index)
+        self._suction_budget = min(self._suction_budget, 1.0 + sum(rate for _, _, rate in tools) * dt_s / self.particle_volume_ml)
+
+    @ti.func
+    def _texel(self, x):
+        """(row, col, inside) of grid position x, indices clamped to the texture; inside is 0 off the
+        texture or on a masked texel."""
+        col = ti.cast(ti.floor(x[0]), ti.i32)
+        row = ti.cast(ti.floor(x[1]), ti.i32)
+        inside = 0
+        if 0 <= col < self.width and 0 <= row < self.height:
+            inside = self.mask[row, col]
+        return ti.min(ti.max(row, 0), self.height - 1), ti.min(ti.max(col, 0), self.width - 1), inside
+
+    @ti.func
+    def world_position(self, x):
+        """World position (mm) of grid position x, linear within its texel."""
+        row, col, inside = self._texel(x)
+        result = ti.Vector([0.0, 0.0, 0.0])
+        if inside:
+            result = self.texel_position[row, col] + self.texel_ex[row, col] * (x[0] - col - 0.5) + self.texel_ey[row, col] * (x[1] - row - 0.5)
+        return result
+
+    @ti.kernel
+    def _predict(self, n: ti.i32, dt: ti.f32, nu: ti.f32, film: ti.f32, rest: ti.f32, pinning: ti.f32, lifetime: ti.f32):
+        """Gravity with film drag (exact), advance; particles off the surface or too old leave."""
+        for i in range(n):
+            if self.fate[i] == ALIVE:
+                row, col, _ = self._texel(self.pos[i])
+                g = self.texel_gravity[row, col]
+                rho = self.density[i][0]
+                if pinning > 0.0:
+                    g *= ti.min(rho / pinning, 1.0)
+                thickness = film * ti.max(rho / rest, 0.25)
+                drag = 3.0 * nu / (thickness * thickness)
+                self.drag[i] = drag
+                v = self.vel[i]
+                if drag > 0.0:
+                    decay = ti.exp(-drag * dt)
+                    v = v * decay + g * (1.0 - decay) / drag
+                else:
+                    v += g * dt
+                self.vel[i] = v
+                self.pos_prev[i] = self.pos[i]
+                self.pos[i] += v * dt
+                self.age[i] += dt
+                _, _, inside = self._texel(self.pos[i])
+                if not inside:
+                    self.fate[i] = LEFT_SURFACE
+                elif self.age[i] > lifetime:
+                    self.fate[i] = EXPIRED
+
+    @ti.kernel
+    def _bin(self, n: ti.i32):
+        size = self.cell_size[None]
+        for i in range(n):
+            cell = -1
+            if self.fate[i] == ALIVE:
+                x = self.pos[i]
+                cx = ti.min(ti.max(ti.cast(ti.floor(x[0] / size[0]), ti.i32), 0), self.cells_x - 1)
+                cy = ti.min(ti.max(ti.cast(ti.floor(x[1] / size[1]), ti.i32), 0), self.cells_y - 1)
+                cell = cy * self.cells_x + cx
+                ti.atomic_add(self.cell_count[cell], 1)
+                row, col, _ = self._texel(x)
+                self.metric[i] = self.texel_metric[row, col]
+            self.cell[i] = cell
+
+    @ti.kernel
+    def _sort(self, n: ti.i32, cells: ti.i32):
+        """Stable counting sort: prefix sum over cells, then particles in index order (serial, deterministic)."""
+        ti.loop_config(serialize=True)
+        for c in range(cells + 1):
+            if c == 0:
+                self.cell_start[0] = 0
+            else:
+                self.cell_start[c] = self.cell_start[c - 1] + self.cell_count[c - 1]
+                self.cell_count[c - 1] = 0
+        ti.loop_config(serialize=True)
+        for i in range(n):
+            cell = self.cell[i]
+            if cell >= 0:
+                self.sorted[self.cell_start[cell] + self.cell_count[cell]] = i
+                self.cell_count[cell] += 1
+        for c in range(cells):
+            self.cell_count[c] = 0
+
+    @ti.func
+    def _pair(self, i, j):
+        """Grid offset d = x_j - x_i and physical distance r (mm) through the pair's mean metric."""
+        d = self.pos[j] - self.pos[i]
+        m = 0.5 * (self.metric[i] + self.metric[j])
+        r = ti.sqrt(ti.max(m[0] * d[0] * d[0] + 2.0 * m[1] * d[0] * d[1] + m[2] * d[1] * d[1], 0.0))
+        return d, r, m
+
+    @ti.func
+    def _for_neighbours(self, i):
+        """Cell range of particle i's 3 x 3 neighbourhood."""
+        x = self.pos[i]
+        size = self.cell_size[None]
+        cx = ti.min(ti.max(ti.cast(ti.floor(x[0] / size[0]), ti.i32), 0), self.cells_x - 1)
+        cy = ti.min(ti.max(ti.cast(ti.floor(x[1] / size[1]), ti.i32), 0), self.cells_y - 1)
+        return ti.max(cx - 1, 0), ti.min(cx + 1, self.cells_x - 1), ti.max(cy - 1, 0), ti.min(cy + 1, self.cells_y - 1)
+
+    @ti.kernel
+    def _density_pass(self, n: ti.i32, h: ti.f32, rest: ti.f32, k: ti.f32, k_near: ti.f32):
+        for i in range(n):
+            if self.fate[i] == ALIVE:
+                rho, rho_near = 0.0, 0.0
+                x0, x1, y0, y1 = self._for_neighbours(i)
+                seen, examined = 0, 0
+                for cy in range(y0, y1 + 1):
+                    for cx in range(x0, x1 + 1):
+                        cell = cy * self.cells_x + cx
+                        for s in range(self.cell_start[cell], self.cell_start[cell + 1]):
+                            examined += 1
+                            if examined > MAX_CANDIDATES:
+                                break
+                            j = self.sorted[s]
+                            if j != i and seen < MAX_NEIGHBOURS:
+                                offset, r, pair_metric = self._pair(i, j)
+                                if r < h:
+                                    q = 1.0 - r / h
+                                    rho += q * q
+                                    rho_near += q * q * q
+                                    seen += 1
+                self.density[i] = ti.Vector([rho, rho_near])
+                self.pressure[i] = ti.Vector([k * (rho - rest), k_near * rho_near])
+
+    @ti.kernel
+    def _relax(self, n: ti.i32, dt: ti.f32, h: ti.f32):
+        """Double density relaxation, symmetric gather: each pair moves i by -dt^2/2 (P_i + P_j)(...) r_hat."""
+        for i in range(n):
+            shift = ti.Vector([0.0, 0.0])
+            if self.fate[i] == ALIVE:
+                x0, x1, y0, y1 = self._for_neighbours(i)
+                seen, examined = 0, 0
+                for cy in range(y0, y1 + 1):
+                    for cx in range(x0, x1 + 1):
+                        cell = cy * self.cells_x + cx
+                        for s in range(self.cell_start[cell], self.cell_start[cell + 1]):
+                            examined += 1
+                            if examined > MAX_CANDIDATES:
+                                break
+                            j = self.sorted[s]
+                            if j != i and seen < MAX_NEIGHBOURS:
+                                d, r, pair_metric = self._pair(i, j)
+                                if r < h:
+                                    seen += 1
+                                    if r > 1e-6 * h:
+                                        q = 1.0 - r / h
+                                        p = self.pressure[i] + self.pressure[j]
+                                        push = 0.5 * dt * dt * (p[0] * q + p[1] * q * q)  # mm along r_hat
+                                        shift -= push / r * d
+                                    else:  # coincident: separate along a deterministic direction
+                                        angle = 2.0 * math.pi * _hash01(ti.u32(self.uid[i]), ti.u32(self.uid[j]))
+                                        shift -= 0.05 * h * ti.Vector([ti.cos(angle), ti.sin(angle)]) / ti.sqrt(self.metric[i][0] + self.metric[i][2])
+                damping = self.drag[i] * dt  # pressure moves the film against the same drag as gravity
+                if damping > 1e-6:
+                    shift *= (1.0 - ti.exp(-damping)) / damping
+                m = self.metric[i]
+                length = ti.sqrt(ti.max(m[0] * shift[0] * shift[0] + 2.0 * m[1] * shift[0] * shift[1] + m[2] * shift[1] * shift[1], 0.0))
+                limit = MAX_RELAX_FRACTION * h
+                if length > limit:
+                    shift *= limit / length
+            self.pos_new[i] = self.pos[i] + shift
+
+    @ti.kernel
+    def _finish(self, n: ti.i32, dt: ti.f32, inertia: ti.f32, max_speed: ti.f32, clotting: ti.f32, rest_speed: ti.f32):
+        """Velocity from displacement (inertia, clamp), clotting; leaving the surface."""
+        for i in range(n):
+            if self.fate[i] == ALIVE:
+                start = self.pos_prev[i]
+                moved = (self.pos_new[i] - start) * (1.0 - self.clot[i])
+                v, speed = self._clamp_speed(inertia * moved / dt, self.metric[i], max_speed)
+                self.pos[i] = start + moved
+                self.vel[i] = v
+                if speed < rest_speed:
+                    self.clot[i] = ti.min(self.clot[i] + clotting * dt, 1.0)
+                _, _, inside = self._texel(self.pos[i])
+                if not inside:
+                    self.fate[i] = LEFT_SURFACE
+
+    @ti.func
+    def _clamp_speed(self, v, m, max_speed):
+        """(v scaled to at most max_speed mm/s through metric m, its speed in mm/s)."""
+        speed = ti.sqrt(ti.max(m[0] * v[0] * v[0] + 2.0 * m[1] * v[0] * v[1] + m[2] * v[1] * v[1], 0.0))
+        if speed > max_speed:
+            v *= max_speed / speed
+            speed = max_speed
+        return v, speed
+
+    @ti.kernel
+    def _viscosity(self, n: ti.i32, dt: ti.f32, h: ti.f32, sigma: ti.f32, beta: ti.f32, max_speed: ti.f32):
+        """Viscosity impulses between approaching pairs, gathered: v_i -= I_ij / 2; then the speed clamp."""
+        for i in range(n):
+            v = self.vel[i]
+            if self.fate[i] == ALIVE and (sigma > 0.0 or beta > 0.0):
+                x0, x1, y0, y1 = self._for_neighbours(i)
+                seen, examined = 0, 0
+                for cy in range(y0, y1 + 1):
+                    for cx in range(x0, x1 + 1):
+                        cell = cy * self.cells_x + cx
+                        for s in range(self.cell_start[cell], self.cell_start[cell + 1]):
+                            examined += 1
+                            if examined > MAX_CANDIDATES:
+                                break
+                            j = self.sorted[s]
+                            if j != i and seen < MAX_NEIGHBOURS and self.fate[j] == ALIVE:
+                                d, r, m = self._pair(i, j)
+                                if r < h:
+                                    seen += 1
+                                    if r > 1e-6 * h:
+                                        dv = self.vel[i] - self.vel[j]
+                                        u = (m[0] * dv[0] * d[0] + m[1] * (dv[0] * d[1] + dv[1] * d[0]) + m[2] * dv[1] * d[1]) / r
+                                        if u > 0.0:
+                                            impulse = dt * (1.0 - r / h) * (sigma * u + beta * u * u)
+                                            v -= 0.5 * ti.min(impulse, u) / r * d
+                row, col, _ = self._texel(self.pos[i])
+                v, _ = self._clamp_speed(v, self.texel_metric[row, col], max_speed)
+            self.vel_new[i] = v
+        for i in range(n):
+            self.vel[i] = self.vel_new[i]
+
+    @ti.kernel
+    def _count_suction(self, n: ti.i32, tools: ti.i32):
+        self.suction_candidates[None] = 0
+        for i in range(n):
+            if self.fate[i] == ALIVE and self._in_suction(i, tools):
+                ti.atomic_add(self.suction_candidates[None], 1)
+
+    @ti.func
+    def _in_suction(self, i, tools):
+        hit = 0
+        p = self.world_position(self.pos[i])
+        for t in range(tools):
+            tool = self.suction_tools[t]
+            if (p - ti.Vector([tool[0], tool[1], tool[2]])).norm() < tool[3]:
+                hit = 1
+        return hit
+
+    @ti.kernel
+    def _remove_suctioned(self, n: ti.i32, tools: ti.i32, probability: ti.f32, step: ti.i32):
+        for i in range(n):
+            if self.fate[i] == ALIVE and self._in_suction(i, tools):
+                if _hash01(ti.u32(self.uid[i]), ti.u32(step) + ti.u32(7)) < probability:
+                    self.fate[i] = SUCTIONED
+
+    @ti.kernel
+    def _compact(self, n: ti.i32):
+        """Keep alive particles in order at the front of the pool; count the others by fate (serial)."""
+        self.alive_count[None] = 0
+        ti.loop_config(serialize=True)
+        for i in range(n):
+            fate = self.fate[i]
+            if fate == ALIVE:
+                k = self.alive_count[None]
+                if k != i:
+                    self.pos[k] = self.pos[i]
+                    self.pos_prev[k] = self.pos_prev[i]
+                    self.vel[k] = self.vel[i]
+                    self.density[k] = self.density[i]
+                    self.age[k] = self.age[i]
+                    self.clot[k] = self.clot[i]
+                    self.uid[k] = self.uid[i]
+                    self.fate[k] = ALIVE
+                self.alive_count[None] = k + 1
+            else:
+                self.counters[fate] += 1
+
+    # --- outputs ------------------------------------------------------------------------------
+    def accounting(self) -> dict:
+        counters = self.counters.to_numpy()
+        result = {key: int(counters[index]) for index, key in enumerate(KEYS)}
+        result["alive"] = self.count
+        return result
+
+    def particle_arrays(self) -> dict:
+        """particle_uv (N, 2) in [0, 1], particle_position_mm (N, 3), particle_velocity_mm_s (N, 3)."""
+        n = self.count
+        pos = self.pos.to_numpy()[:n].astype(np.float64)
+        vel = self.vel.to_numpy()[:n].astype(np.float64)
+        rows = np.clip(np.floor(pos[:, 1]).astype(int), 0, self.height - 1)
+        cols = np.clip(np.floor(pos[:, 0]).astype(int), 0, self.width - 1)
+        ex, ey = self.surface.tangent_u[rows, cols], -self.surface.tangent_v[rows, cols]
+        position = self.surface.position_mm[rows, cols] + ex * (pos[:, :1] - cols[:, None] - 0.5) + ey * (pos[:, 1:] - rows[:, None] - 0.5)
+        uv = np.stack([pos[:, 0] / self.width, 1.0 - pos[:, 1] / self.height], axis=1)
+        return {
+            "particle_uv": uv.astype(np.float32),
+            "particle_position_mm": position.astype(np.float32),
+            "particle_velocity_mm_s": (ex * vel[:, :1] + ey * vel[:, 1:]).astype(np.float32),
+        }
+
+    def blood_area_mm2(self) -> float:
+        """Surface area (mm^2) of texels whose displayed film is at least a quarter of the rest thickness."""
+        self.update_display(fade=0.0)
+        covered = self.thickness.to_numpy() >= 0.25 * self.params["film_thickness_mm"]
+        return float(self.surface.texel_area_mm2[covered & self.surface.mask].sum(dtype=np.float64))
+
+    def update_display(self, fade: float) -> None:
+        """Splat particles, blur by the particle spacing, keep max(new, fade * old) (temporal fade)."""
+        self.splat.fill(0)
+        if self.count:
+            self._splat(self.count)
+        spacing_texels = self.params["particle_spacing_mm"] / float(np.sqrt(np.median(self.surface.texel_area_mm2[self.surface.mask])))
+        self._blur_and_fade(max(1, min(int(round(spacing_texels)), 32)), self.particle_volume_ml * 1e3 / SPLAT_SCALE, fade)
+
+    @ti.kernel
+    def _splat(self, n: ti.i32):
+        for i in range(n):
+            x = self.pos[i] - 0.5
+            c0 = ti.cast(ti.floor(x[0]), ti.i32)
+            r0 = ti.cast(ti.floor(x[1]), ti.i32)
+            fx, fy = x[0] - c0, x[1] - r0
+            for dr, dc in ti.static(ti.ndrange(2, 2)):
+                r, c = r0 + dr, c0 + dc
+                w = (fx if dc else 1.0 - fx) * (fy if dr else 1.0 - fy)
+                if 0 <= r < self.height and 0 <= c < self.width:
+                    ti.atomic_add(self.splat[r, c], ti.cast(w * SPLAT_SCALE + 0.5, ti.i32))
+
+    @ti.kernel
+    def _blur_and_fade(self, radius: ti.i32, unit_mm3: ti.f32, fade: ti.f32):
+        """Separable box blur of the splatted volume (radius texels) -> thickness (mm) = volume / area."""
+        for r, c in self.blur_tmp:
+            total = 0
+            for k in range(-radius, radius + 1):
+                cc = ti.min(ti.max(c + k, 0), self.width - 1)
+                total += self.splat[r, cc]
+            self.blur_tmp[r, c] = total * unit_mm3
+        for r, c in self.thickness:
+            total = 0.0
+            for k in range(-radius, radius + 1):
+                rr = ti.min(ti.max(r + k, 0), self.height - 1)
+                total += self.blur_tmp[rr, c]
+            fresh = total / ((2 * radius + 1) * (2 * radius + 1) * self.texel_area[r, c])
+            self.thickness[r, c] = ti.max(fresh, fade * self.thickness[r, c])
+
+
+class BleedPoint:
+    """A validated scene bleed point: position and rate (ml/s), linear along its keyframes, on in [start, stop)."""
+
+    def __init__(self, item: dict):
+        self.name, self.item = item["name"], item
+
+    def _lerp(self, name, t_s):
+        keys = [(frame["t_s"], frame[name]) for frame in self.item["path"] if frame[name] is not None]
+        if not keys:
+            return np.asarray(self.item[name], np.float64)
+        times = [time for time, _ in keys]
+        index = int(np.searchsorted(times, t_s, side="right"))
+        if index in (0, len(keys)):
+            return np.asarray(keys[0 if index == 0 else -1][1], np.float64)
+        (t0, v0), (t1, v1) = keys[index - 1], keys[index]
+        w = (t_s - t0) / (t1 - t0)
+        return (1.0 - w) * np.asarray(v0, np.float64) + w * np.asarray(v1, np.float64)
+
+    def position_at(self, t_s: float) -> np.ndarray:
+        return self._lerp("position_mm", t_s)
+
+    def rate_at(self, t_s: float) -> float:
+        """ml/s before coagulation; 0 outside [start_s, stop_s)."""
+        stop = self.item["stop_s"]
+        if t_s < self.item["start_s"] or (stop is not None and t_s >= stop):
+            return 0.0
+        return float(self._lerp("rate_ml_s", t_s))
+
+
+def auto_capacity(bleed_points: list, params: dict, duration_s: float) -> int:
+    """Pool size for the scene: 1.25 x the most blood alive at once (rates x min(duration, lifetime)) + 4096."""
+    if params["capacity"]:
+        return int(params["capacity"])
+    horizon = min(max(duration_s, 1.0), params["lifetime_s"])
+    peak = sum(max([point["rate_ml_s"]] + [frame["rate_ml_s"] or 0.0 for frame in point["path"]]) for point in bleed_points)
+    return int(min(2_000_000, math.ceil(1.25 * peak * horizon / particle_volume_ml(params)) + 4096))

@@ -1,0 +1,247 @@
+"""Blood: gravity through the metric, resolution independence, accounting, settling, hard cases,
+determinism, cautery stopping bleeding and suction."""
+import copy
+import json
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import yaml
+
+from sims import params
+from sims.config import REPO_ROOT, load_scene_config
+from sims.scene import Scene
+from sims.sph import KEYS, Bleeding
+from sims.surface import build_surface, load_mesh
+from tests.helpers import plane_mesh
+
+DEFAULTS = {name: spec.default for name, spec in params.BLEEDING.items()}
+GRAVITY = [0.0, 0.0, -9810.0]
+HOLLOW_MM = (-7.0, 10.0)  # the dimple of static/meshes/patch.obj (tools/make_static.py)
+
+
+def bleeding_on(surface, capacity=20_000, **changes):
+    return Bleeding(surface, {**DEFAULTS, **changes}, GRAVITY, capacity)
+
+
+def assert_accounting(bleeding):
+    counts = bleeding.accounting()
+    assert counts["spawned"] == counts["alive"] + counts["suctioned"] + counts["left_surface"] + counts["expired"], counts
+    return counts
+
+
+@pytest.mark.parametrize("width_mm, length_mm", [(60.0, 60.0), (30.0, 60.0)])
+def test_lone_particle_accelerates_at_g_sin_theta(width_mm, length_mm):
+    """30 degree incline; the 30 x 60 mm plane maps onto square UVs: stretched 2:1 along the slope."""
+    surface = build_surface(plane_mesh(width_mm, length_mm, slope_deg=30.0), 128)
+    bleeding = bleeding_on(surface, viscosity_sigma_1_s=0.0, viscosity_beta_s_mm=0.0, blood_viscosity_mpa_s=0.0,
+                           inertia=1.0, max_speed_mm_s=1.0e5)
+    bleeding.spawn("p", (8, 64), 1, 0.0)  # near the top (+y, uphill)
+    start = bleeding.particle_arrays()["particle_position_mm"][0].copy()
+    dt, steps = 0.01, 10
+    for _ in range(steps):
+        bleeding.step(dt)
+    state = bleeding.particle_arrays()
+    speed = np.linalg.norm(state["particle_velocity_mm_s"][0])
+    expected = 9810.0 * math.sin(math.radians(30.0))
+    assert speed / (steps * dt) == pytest.approx(expected, rel=0.02)
+    travelled = np.linalg.norm(state["particle_position_mm"][0] - start)
+    assert travelled == pytest.approx(0.5 * expected * (steps * dt) ** 2, rel=0.06)  # symplectic Euler: (n+1)/n
+    direction = (state["particle_position_mm"][0] - start) / travelled
+    assert direction @ [0.0, -math.cos(math.radians(30.0)), -0.5] == pytest.approx(1.0, abs=1e-3)  # straight downhill
+
+
+def scene_config(changes: dict):
+    config = load_scene_config(REPO_ROOT / "scenes" / "bleeding.yaml", [f"{k}={json.dumps(v)}" for k, v in changes.items()])
+    return config
+
+
+def test_blood_area_is_independent_of_texture_size():
+    areas = []
+    for size in (256, 512):
+        scene = Scene(scene_config({"texture_size": size}))
+        while scene.time_s < 1.0 - 1e-9:
+            scene.step()
+        areas.append(scene.metrics()["bleeding"]["blood_area_mm2"])
+    assert areas[0] > 20.0
+    assert abs(areas[0] / areas[1] - 1) < 0.15, areas
+
+
+def test_accounting_holds_at_every_step():
+    changes = {
+        "texture_size": 128,
+        "bleeding.lifetime_s": 0.6,
+        "bleed_points": [
+            {"name": "top", "position_mm": [8.0, 14.0, 4.0], "rate_ml_s": 0.05},
+            {"name": "edge", "position_mm": [0.0, -19.5, -5.5], "rate_ml_s": 0.05},  # at the lower border: leaves
+        ],
+        "instruments": [{
+            "name": "sucker", "shape": {"type": "capsule", "radius_mm": 1.5}, "position_mm": [8.0, 10.0, 5.0],
+            "energized": True, "suction": {"radius_mm": 6.0, "rate_ml_s": 0.02},
+        }],
+    }
+    scene = Scene(scene_config(changes))
+    for _ in range(150):
+        scene.step()
+        counts = assert_accounting(scene.bleeding)
+    assert all(counts[key] > 0 for key in ("alive", "suctioned", "left_surface", "expired")), counts
+
+
+def settle(substeps: int, seconds: float = 3.0, particles: int = 80):
+    """A blob smaller than the hollow, released in it: (bleeding, mean density error, speeds, centroid drift in the last second)."""
+    surface = build_surface(load_mesh(REPO_ROOT / "static/meshes/patch.obj"), 256)
+    bleeding = bleeding_on(surface, substeps=substeps)
+    positions = surface.position_mm
+    distance = np.linalg.norm(positions[..., :2] - HOLLOW_MM, axis=-1) + np.where(surface.mask, 0, np.inf)
+    texel = np.unravel_index(np.argmin(distance), distance.shape)
+    bleeding.spawn("blob", texel, particles, 1.0)
+    steps = int(round(seconds / 0.01))
+    for step in range(steps):
+        bleeding.step(0.01)
+        if step == steps - 101:
+            centroid = bleeding.particle_arrays()["particle_position_mm"].mean(axis=0)
+    rho = bleeding.density.to_numpy()[: bleeding.count, 0]
+    state = bleeding.particle_arrays()
+    drift = np.linalg.norm(state["particle_position_mm"].mean(axis=0) - centroid)
+    return bleeding, rho.mean() / bleeding.rest_density - 1.0, np.linalg.norm(state["particle_velocity_mm_s"], axis=1), drift
+
+
+def test_blob_settles_in_the_hollow_near_rest_density():
+    bleeding, density_error, speed, drift = settle(substeps=int(DEFAULTS["substeps"]))
+    assert bleeding.count == 80  # nothing ran out of the hollow
+    assert drift < 0.1  # mm in the last second: at rest
+    assert abs(density_error) < 0.10
+
+
+def run_steps(bleeding, steps, dt):
+    for _ in range(steps):
+        bleeding.step(dt)
+        assert_accounting(bleeding)
+
+
+def assert_bounded(bleeding, max_speed, label=""):
+    state = bleeding.particle_arrays()
+    for name, values in state.items():
+        assert np.isfinite(values).all(), (label, name)
+    speed = np.linalg.norm(state["particle_velocity_mm_s"], axis=1)
+    assert (speed <= max_speed * 1.001 + 1e-3).all(), (label, speed.max())
+    assert ((state["particle_uv"] >= 0) & (state["particle_uv"] <= 1)).all()
+
+
+@pytest.fixture(scope="module")
+def patch_256():
+    return build_surface(load_mesh(REPO_ROOT / "static/meshes/patch.obj"), 256)
+
+
+@pytest.mark.parametrize("case", ["rest_density_50", "time_step_x10", "border"])
+def test_hard_cases_stay_finite_and_bounded(patch_256, case):
+    changes = {"rest_density": 50.0} if case == "rest_density_50" else {}
+    bleeding = bleeding_on(patch_256, **changes)
+    texel = (128, 128) if case != "border" else (255, 3)
+    bleeding.spawn("blob", texel, 2000, 2.0)
+    run_steps(bleeding, 50, 0.1 if case == "time_step_x10" else 0.01)
+    assert_bounded(bleeding, DEFAULTS["max_speed_mm_s"])
+    if case == "border":
+        assert bleeding.accounting()["left_surface"] > 0
+
+
+def test_dense_clump_of_100k_particles_in_one_cell(patch_256):
+    bleeding = bleeding_on(patch_256, capacity=100_000)
+    assert bleeding.spawn("clump", (128, 128), 100_000, 0.0) == 100_000  # all on one point
+    run_steps(bleeding, 3, 0.01)
+    assert_bounded(bleeding, DEFAULTS["max_speed_mm_s"])
+    assert bleeding.accounting()["spawned"] == 100_000
+
+
+@pytest.mark.parametrize("end", ["min", "max"])
+def test_every_slider_at_each_end(patch_256, end):
+    bleeding = bleeding_on(patch_256, capacity=3000)
+    for name, spec in params.BLEEDING.items():
+        if name == "capacity":
+            continue
+        bleeding.params.update(DEFAULTS, **{name: spec.min if end == "min" else spec.max})
+        bleeding.reset()
+        bleeding.spawn("blob", (128, 128), 400, 1.0)
+        run_steps(bleeding, 5, 0.01)
+        assert_bounded(bleeding, bleeding.params["max_speed_mm_s"], name)
+
+
+def test_pool_full_is_counted_not_silent(patch_256):
+    bleeding = bleeding_on(patch_256, capacity=100)
+    assert bleeding.spawn("a", (128, 128), 150, 1.0) == 100
+    counts = bleeding.accounting()
+    assert counts["spawned"] == 100 and counts["dropped_pool_full"] == 50
+
+
+def test_same_scene_twice_gives_identical_state():
+    states = []
+    for _ in range(2):
+        scene = Scene(scene_config({"texture_size": 128}))
+        for _ in range(60):
+            scene.step()
+        states.append(scene.state_arrays())
+    for key in states[0]:
+        assert np.array_equal(states[0][key], states[1][key]), key
+
+
+def test_identical_state_with_one_and_two_threads(tmp_path):
+    outputs = []
+    for threads in ("1", "2"):
+        out = tmp_path / f"threads{threads}"
+        env = {**__import__("os").environ, "TISSUE_LAB_THREADS": threads}
+        result = subprocess.run([sys.executable, "-m", "lab", "run", str(REPO_ROOT / "scenes" / "bleeding.yaml"), "--out", str(out),
+                                 "--duration", "0.5", "--set", "texture_size=128", "--arch", "cpu", "--quiet"],
+                                capture_output=True, text=True, cwd=REPO_ROOT, env=env)
+        assert result.returncode == 0, result.stderr
+        outputs.append((out / "state.npz").read_bytes())
+    assert outputs[0] == outputs[1]
+
+
+def surface_height(x_mm: float, y_mm: float) -> float:
+    vertices = load_mesh(REPO_ROOT / "static/meshes/patch.obj").vertices
+    return float(vertices[np.argmin(((vertices[:, :2] - [x_mm, y_mm]) ** 2).sum(axis=1)), 2])
+
+
+def test_cautery_stops_bleeding():
+    """A hot ball pressed on the vessel coagulates the tissue under it; the bleed rate falls to zero."""
+    x, y = 8.0, 14.0
+    z = surface_height(x, y)
+    scene = Scene(scene_config({
+        "texture_size": 128,
+        "models": ["cautery", "bleeding"],
+        "bleed_points": [{"name": "vessel", "position_mm": [x, y, z], "rate_ml_s": 0.05}],
+        "instruments": [{"name": "ball", "shape": {"type": "ball", "radius_mm": 2.0}, "position_mm": [x, y, z + 5.0],
+                         "path": [{"t_s": 0.3, "position_mm": [x, y, z + 5.0]},
+                                  {"t_s": 0.4, "position_mm": [x, y, z + 1.5], "energized": True}]}],
+    }))
+    for _ in range(30):
+        scene.step()
+    assert scene.bleed_rates()["vessel"] == pytest.approx(0.05, rel=1e-3)  # 37 C tissue coagulates negligibly
+    bled = scene.bleeding.accounting()["spawned"]
+    assert bled > 0
+    for _ in range(100):
+        scene.step()
+    assert scene.bleed_rates()["vessel"] < 1e-6
+    spawned = scene.bleeding.accounting()["spawned"]
+    for _ in range(20):
+        scene.step()
+    assert scene.bleeding.accounting()["spawned"] == spawned
+
+
+def test_suction_removes_blood_inside_its_radius_only(patch_256):
+    bleeding = bleeding_on(patch_256, clotting_rate_1_s=10.0, rest_speed_mm_s=50.0)
+    centre = patch_256.position_mm[128, 128]
+    far = patch_256.position_mm[128, 200]
+    bleeding.spawn("near", (128, 128), 200, 1.0)
+    bleeding.spawn("far", (128, 200), 200, 1.0)
+    for _ in range(20):  # let it clot in place
+        bleeding.step(0.01)
+    before = bleeding.particle_arrays()["particle_position_mm"]
+    inside_before = np.linalg.norm(before - centre, axis=1) < 4.0
+    bleeding.step(0.01, suction=[(centre, 4.0, 100.0)])
+    after = bleeding.particle_arrays()["particle_position_mm"]
+    assert bleeding.accounting()["suctioned"] == inside_before.sum() > 100
+    assert (np.linalg.norm(after - centre, axis=1) >= 4.0).all()
+    assert (np.linalg.norm(after - far, axis=1) < 4.0).sum() == (np.linalg.norm(before - far, axis=1) < 4.0).sum()

@@ -23,6 +23,15 @@ def write_png(path: Path, rgb) -> None:
     temp.replace(path)
 
 
+def _warn_pool_full(scene: Scene, bar) -> None:
+    """Say once, on stderr, that the particle pool filled up (metrics count every dropped particle)."""
+    bleeding = scene.bleeding
+    if bleeding is not None and bleeding.pool_full_reported and not bleeding.pool_full_logged:
+        bleeding.pool_full_logged = True
+        bar.write(f"warning: {scene.name}: bleeding pool full ({bleeding.capacity} particles) at t = {scene.time_s:.2f} s; "
+                  "new blood is dropped and counted in metrics.json (raise bleeding.capacity)", file=sys.stderr)
+
+
 def run(scene: Scene, out_dir, duration_s: float | None = None, frames_every_s: float | None = None, progress: bool = True) -> dict:
     """Run `scene` for duration_s (default: the scene's), write outputs into out_dir, return metrics."""
     out = Path(out_dir)
@@ -46,6 +55,7 @@ def run(scene: Scene, out_dir, duration_s: float | None = None, frames_every_s: 
                 bad = scene.non_finite_field()
                 if bad:
                     raise SimulationDiverged(f"{bad} became non-finite at step {index} (t = {scene.time_s:.4g} s)")
+            _warn_pool_full(scene, bar)
             if frame_every and index % frame_every == 0:
                 write_png(frames / f"frame_{index // frame_every:05d}.png", scene.composite())
     wall = time.perf_counter() - start

@@ -6,7 +6,9 @@ coagulation (1 - exp(-Omega)), char, omega or temperature_c. Reordering or addin
 code. Blood covers the tissue where its film is thick enough: coverage is a smoothstep of the
 displayed film thickness between BLOOD_EDGE fractions of the rest film (a defined, anti-aliased
 edge rather than the glow ring of a plain blur), and its colour darkens from fresh red at the rest
-film to near black-red at BLOOD_DARK_FILMS films. Texels outside the UV charts take the colour of the
+film to near black-red at BLOOD_DARK_FILMS films, and a thin film lets the tissue show through
+(opacity 1 - exp(-BLOOD_ABSORPTION films)). The film thickness is also read as a height map:
+its slope tilts a normal that catches a baked highlight, so puddles and rivulet edges look wet. Texels outside the UV charts take the colour of the
 nearest surface texel, so texture filtering in a viewer never bleeds background into the mesh.
 """
 import numpy as np
@@ -16,8 +18,12 @@ from PIL import Image
 FIELD_CODES = {"coagulation": 0, "char": 1, "omega": 2, "temperature_c": 3}
 BLOOD_EDGE = (0.25, 0.6)              # film fractions where coverage goes from 0 to 1
 BLOOD_DARK_FILMS = 4.0                # film multiples at which blood reaches its darkest colour
-BLOOD_THIN_RGB = (0.55, 0.04, 0.04)   # fresh blood film over tissue
-BLOOD_THICK_RGB = (0.20, 0.01, 0.015)  # pooled blood
+BLOOD_THIN_RGB = (0.36, 0.01, 0.02)   # fresh blood film over tissue
+BLOOD_THICK_RGB = (0.12, 0.0, 0.01)  # pooled blood
+BLOOD_GLOSS = 0.22                    # strength of the baked highlight on the blood surface
+BLOOD_ABSORPTION = 1.8                # opacity of a film: 1 - exp(-absorption * films); thin blood shows tissue
+GLOSS_REACH = 4                       # texels either side for the slope of the blood surface
+LIGHT_DIR = (-0.4, -0.5, 0.77)        # grid-space light (x = columns, y = rows, z out of the surface)
 
 
 class TextureError(ValueError):
@@ -44,7 +50,7 @@ def load_texture(path, size: int, tile: int = 1) -> np.ndarray:
 class Composer:
     """Stage textures in one field; tissue() blends them from the cautery fields, rgb() adds blood."""
 
-    def __init__(self, stages: list, textures: list, fill_index: np.ndarray):
+    def __init__(self, stages: list, textures: list, fill_index: np.ndarray, texel_mm: float):
         count = len(stages)
         height, width = fill_index.shape
         self.textures = ti.Vector.field(3, ti.f32, (count, height, width))
@@ -60,13 +66,14 @@ class Composer:
         self.color.from_numpy(textures[0].astype(np.float32))
         self.rgb = ti.Vector.field(3, ti.u8, (height, width))
         self.count = count
+        self.texel_mm = texel_mm  # typical texel size, for slopes of the blood height map
 
     def compose(self, cautery=None, bleeding=None) -> np.ndarray:
         """(H, W, 3) uint8 from the models present (each may be None)."""
         if cautery is not None:
             self._tissue(cautery.temperature[cautery.current], cautery.omega, cautery.char)
         if bleeding is not None:
-            self._with_blood(bleeding.thickness, bleeding.params["film_thickness_mm"])
+            self._with_blood(bleeding.thickness, bleeding.params["film_thickness_mm"], self.texel_mm)
         else:
             self._plain()
         return self.rgb.to_numpy()
@@ -107,8 +114,11 @@ class Composer:
             self._write(r, c, self.color[sr, sc])
 
     @ti.kernel
-    def _with_blood(self, thickness: ti.template(), film: ti.f32):
+    def _with_blood(self, thickness: ti.template(), film: ti.f32, texel_mm: ti.f32):
         thin, thick = ti.Vector(BLOOD_THIN_RGB), ti.Vector(BLOOD_THICK_RGB)
+        light = ti.Vector(LIGHT_DIR).normalized()
+        half = (light + ti.Vector([0.0, 0.0, 1.0])).normalized()
+        height, width = self.rgb.shape[0], self.rgb.shape[1]
         for r, c in self.rgb:
             sr, sc = self._source(r, c)
             films = thickness[sr, sc] / film
@@ -116,4 +126,9 @@ class Composer:
             cover = x * x * (3.0 - 2.0 * x)
             depth = ti.min(ti.max((films - 1.0) / (BLOOD_DARK_FILMS - 1.0), 0.0), 1.0)
             blood = thin * (1.0 - depth) + thick * depth
-            self._write(r, c, self.color[sr, sc] * (1.0 - cover) + blood * cover)
+            dx = thickness[sr, ti.min(sc + GLOSS_REACH, width - 1)] - thickness[sr, ti.max(sc - GLOSS_REACH, 0)]
+            dy = thickness[ti.min(sr + GLOSS_REACH, height - 1), sc] - thickness[ti.max(sr - GLOSS_REACH, 0), sc]
+            normal = ti.Vector([-dx, -dy, 2.0 * GLOSS_REACH * texel_mm]).normalized()
+            gloss = BLOOD_GLOSS * ti.max(normal.dot(half), 0.0) ** 16
+            alpha = cover * (1.0 - ti.exp(-BLOOD_ABSORPTION * films))
+            self._write(r, c, self.color[sr, sc] * (1.0 - alpha) + blood * alpha + gloss * cover)

@@ -77,7 +77,7 @@ SHAPE = _table(
 BLEEDING = _table(
     ParamSpec("particle_spacing_mm", "mm", 0.5, 0.1, 3.0, "rest spacing of blood particles; sets the volume each carries"),
     ParamSpec("interaction_radius_mm", "mm", 1.5, 0.2, 10.0, "SPH interaction radius h"),
-    ParamSpec("film_thickness_mm", "mm", 0.2, 0.02, 2.0, "blood film thickness at rest density"),
+    ParamSpec("film_thickness_mm", "mm", 0.3, 0.02, 2.0, "blood film thickness at rest density"),
     ParamSpec("rest_density", "x lattice", 1.0, 0.2, 50.0, "rest density, in units of the density of a hexagonal lattice at the particle spacing"),
     ParamSpec("stiffness_mm_s2", "mm/s^2", 2000.0, 0.0, 1.0e5, "pressure stiffness k (double density relaxation)"),
     ParamSpec("near_stiffness_mm_s2", "mm/s^2", 2000.0, 0.0, 1.0e5, "near-pressure stiffness k_near"),
@@ -92,6 +92,7 @@ BLEEDING = _table(
     ParamSpec("rest_speed_mm_s", "mm/s", 1.0, 0.0, 50.0, "blood slower than this counts as at rest for clotting"),
     ParamSpec("lifetime_s", "s", 600.0, 0.1, 36000.0, "particles older than this expire"),
     ParamSpec("substeps", "", 2, 1, 16, "fluid substeps per simulation step", integer=True),
+    ParamSpec("display_fade_s", "s", 0.2, 0.0, 5.0, "blood display keeps traces of moving blood for about this long"),
     ParamSpec("capacity", "particles", 0, 0, 2_000_000, "particle pool size; 0 sizes it from the bleed rates, duration and lifetime", integer=True),
 )
 

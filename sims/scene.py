@@ -46,6 +46,7 @@ class Scene:
             raise ConfigError(self.file, "mesh", f"{config['mesh']}: {exc}") from None
         self.models = list(config["models"])
         self.time_s, self.steps = 0.0, 0
+        self._displayed_at = 0.0
         from sims.compose import Composer
         from sims.instruments import Instrument
 
@@ -68,7 +69,8 @@ class Scene:
             rows, cols = np.nonzero(self.surface.mask)
             self._texels = np.stack([rows, cols], axis=1)
             self._texel_tree = cKDTree(self.surface.position_mm[rows, cols])
-        self.composer = Composer(config["look"]["stages"], textures, self.surface.fill_index)
+        texel_mm = float(np.sqrt(np.median(self.surface.texel_area_mm2[self.surface.mask])))
+        self.composer = Composer(config["look"]["stages"], textures, self.surface.fill_index, texel_mm)
 
     @classmethod
     def from_file(cls, path, overrides=(), arch: str = "auto") -> "Scene":
@@ -130,19 +132,20 @@ class Scene:
 
     def reset(self) -> None:
         self.time_s, self.steps = 0.0, 0
+        self._displayed_at = 0.0
         if self.cautery is not None:
             self.cautery.reset()
         if self.bleeding is not None:
             self.bleeding.reset()
 
     # --- outputs ------------------------------------------------------------------------------
-    def composite(self, fade: float = 0.0) -> np.ndarray:
-        """The display texture (H, W, 3) uint8, image orientation (row 0 = v 1).
-
-        fade: temporal fade of the blood film display (0 shows this step only; 0.8 keeps traces).
-        """
+    def composite(self) -> np.ndarray:
+        """The display texture (H, W, 3) uint8, image orientation (row 0 = v 1)."""
         if self.bleeding is not None:
-            self.bleeding.update_display(fade)
+            fade_s = self.bleeding.params["display_fade_s"]
+            elapsed = self.time_s - self._displayed_at
+            self.bleeding.update_display(float(np.exp(-elapsed / fade_s)) if fade_s > 0 and elapsed >= 0 else 0.0)
+            self._displayed_at = self.time_s
         return self.composer.compose(self.cautery, self.bleeding)
 
     def state_arrays(self) -> dict:

@@ -124,7 +124,8 @@ class Bleeding:
         self.step_index = 0
         self._spawn_budget = {}
         self._suction_budget = 0.0
-        self.pool_full_reported = False
+        self.pool_full_reported = False   # the pool was full when blood should have spawned
+        self.pool_full_logged = False     # a front end has told the user
 
     def reset(self) -> None:
         """Empty the pool and zero the counters."""
@@ -133,6 +134,7 @@ class Bleeding:
         self.thickness.fill(0.0)
         self._spawn_budget, self._suction_budget = {}, 0.0
         self.pool_full_reported = False
+        self.pool_full_logged = False
 
     # --- set-up -------------------------------------------------------------------------------
     def _cell_size(self, radius_mm: float):
@@ -542,17 +544,19 @@ class Bleeding:
 
     def blood_area_mm2(self) -> float:
         """Surface area (mm^2) of texels whose displayed film is at least a quarter of the rest thickness."""
-        self.update_display(fade=0.0)
+        self.update_display(fade=0.0)  # this step's blood only
         covered = self.thickness.to_numpy() >= 0.25 * self.params["film_thickness_mm"]
         return float(self.surface.texel_area_mm2[covered & self.surface.mask].sum(dtype=np.float64))
 
     def update_display(self, fade: float) -> None:
-        """Splat particles, blur by the particle spacing, keep max(new, fade * old) (temporal fade)."""
+        """Splat particles, smooth over half the interaction radius, keep max(new, fade * old)."""
         self.splat.fill(0)
         if self.count:
             self._splat(self.count)
-        spacing_texels = self.params["particle_spacing_mm"] / float(np.sqrt(np.median(self.surface.texel_area_mm2[self.surface.mask])))
-        self._blur_and_fade(max(1, min(int(round(spacing_texels)), 32)), self.particle_volume_ml * 1e3 / SPLAT_SCALE, fade)
+        reach_mm = 0.5 * self.params["interaction_radius_mm"]
+        mask = self.surface.mask
+        radius = [max(1, min(int(round(reach_mm / float(np.median(np.linalg.norm(t[mask], axis=1))))), 64)) for t in (self.surface.tangent_u, self.surface.tangent_v)]
+        self._blur_and_fade(radius[0], radius[1], self.particle_volume_ml * 1e3 / SPLAT_SCALE, fade)
 
     @ti.kernel
     def _splat(self, n: ti.i32):
@@ -568,20 +572,20 @@ class Bleeding:
                     ti.atomic_add(self.splat[r, c], ti.cast(w * SPLAT_SCALE + 0.5, ti.i32))
 
     @ti.kernel
-    def _blur_and_fade(self, radius: ti.i32, unit_mm3: ti.f32, fade: ti.f32):
-        """Separable box blur of the splatted volume (radius texels) -> thickness (mm) = volume / area."""
+    def _blur_and_fade(self, radius_x: ti.i32, radius_y: ti.i32, unit_mm3: ti.f32, fade: ti.f32):
+        """Separable tent filter of the splatted volume (radii in texels) -> thickness (mm) = volume / area."""
         for r, c in self.blur_tmp:
             total = 0
-            for k in range(-radius, radius + 1):
+            for k in range(-radius_x, radius_x + 1):
                 cc = ti.min(ti.max(c + k, 0), self.width - 1)
-                total += self.splat[r, cc]
-            self.blur_tmp[r, c] = total * unit_mm3
+                total += self.splat[r, cc] * (radius_x + 1 - ti.abs(k))
+            self.blur_tmp[r, c] = total * unit_mm3 / ((radius_x + 1) * (radius_x + 1))
         for r, c in self.thickness:
             total = 0.0
-            for k in range(-radius, radius + 1):
+            for k in range(-radius_y, radius_y + 1):
                 rr = ti.min(ti.max(r + k, 0), self.height - 1)
-                total += self.blur_tmp[rr, c]
-            fresh = total / ((2 * radius + 1) * (2 * radius + 1) * self.texel_area[r, c])
+                total += self.blur_tmp[rr, c] * (radius_y + 1 - ti.abs(k))
+            fresh = total / ((radius_y + 1) * (radius_y + 1) * self.texel_area[r, c])
             self.thickness[r, c] = ti.max(fresh, fade * self.thickness[r, c])
 
 

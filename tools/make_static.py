@@ -105,13 +105,16 @@ def hex_cells(rng: np.random.Generator, n: int, cols: int, jitter: float,
 def grow_vessels(rng: np.random.Generator, n: int, roots: int) -> np.ndarray:
     """Random branching vessel trees on an n x n torus.
 
-    Each tree starts with a trunk of radius 3-4.5 px and wanders with small
-    turns, tapering and splitting until the radius drops below 0.45 px.
+    Each tree is a trunk of radius 3-4.5 px growing both ways from a random
+    point; it wanders with small turns, tapering and splitting until the
+    radius drops below 0.45 px.
     Returns segments as an (m, 6) array: x0, y0, x1, y1, r0, r1 (px).
     """
-    segments = []
-    stack = [(rng.uniform(0, n), rng.uniform(0, n), rng.uniform(0, 2 * np.pi),
-              rng.uniform(3.0, 4.5), 0) for _ in range(roots)]
+    segments, stack = [], []
+    for _ in range(roots):
+        x, y = rng.uniform(0, n, 2)
+        angle, radius = rng.uniform(0, 2 * np.pi), rng.uniform(3.0, 4.5)
+        stack += [(x, y, angle, radius, 0), (x, y, angle + np.pi, radius, 0)]
     while stack:
         x, y, angle, radius, depth = stack.pop()
         heading = angle
@@ -137,8 +140,9 @@ def rasterise_vessels(segments: np.ndarray, n: int) -> np.ndarray:
     """Anti-aliased coverage (0..1) of tapered capsule segments, wrapped.
 
     segments: (m, 6) array from grow_vessels.  Returns an (n, n) field whose
-    value is the max over segments of a rounded profile, 1 on the axis of a
-    vessel falling to 0 at its wall (so wide vessels look cylindrical).
+    value is the max over segments of a rounded profile, highest on the axis
+    of a vessel and falling toward its wall (so wide vessels look
+    cylindrical); vessels thinner than 2 px are proportionally fainter.
     """
     out = np.zeros((n, n))
     for x0, y0, x1, y1, r0, r1 in segments:
@@ -152,7 +156,7 @@ def rasterise_vessels(segments: np.ndarray, n: int) -> np.ndarray:
         r = r0 + t * (r1 - r0)
         edge = np.clip(r - d + 0.5, 0.0, 1.0)
         core = np.sqrt(np.clip(1.0 - (d / (r + 0.5)) ** 2, 0.0, 1.0))
-        value = edge * (0.35 + 0.65 * core) * np.clip(r / 1.2, 0.45, 1.0)
+        value = edge * (0.35 + 0.65 * core) * np.clip(r / 2.0, 0.3, 1.0)
         idx = np.ix_(ys % n, xs % n)
         out[idx] = np.maximum(out[idx], value)
     return out
@@ -168,8 +172,8 @@ def tissue_fields(n: int, seed: int) -> dict[str, np.ndarray]:
     Keys: 'large', 'mid', 'fine', 'grain' (fBm bands, std ~1), 'hue' (slow
     colour drift), 'gloss' (0..1 soft sheen), 'lobule_edge' / 'lobule_centre'
     (0..1 hexagonal lobule pattern), 'vessel' (0..1 sharp vessel profile),
-    'vessel_halo' (0..1 blurred vessels), 'blotch', 'cracks', 'ash' (0..1
-    char features).
+    'vessel_halo' (0..1 blurred vessels), 'blotch', 'cracks', 'crack_rim',
+    'ash' (0..1 char features).
     """
     rng = np.random.default_rng(seed)
     f = {
@@ -185,26 +189,23 @@ def tissue_fields(n: int, seed: int) -> dict[str, np.ndarray]:
     wx = 6.0 * band_noise(rng, n, 8.0, 30.0, 1.0)
     wy = 6.0 * band_noise(rng, n, 8.0, 30.0, 1.0)
     f1, edge = hex_cells(rng, n, cols=44, jitter=0.22, dx=wx, dy=wy)
-    f["lobule_edge"] = 1.0 - smoothstep(0.0, 0.16, edge)
+    f["lobule_edge"] = 1.0 - smoothstep(0.0, 0.12, edge)
     f["lobule_centre"] = 1.0 - smoothstep(0.05, 0.22, f1)
 
-    vessel = rasterise_vessels(grow_vessels(rng, n, roots=4), n)
+    vessel = rasterise_vessels(grow_vessels(rng, n, roots=3), n)
     f["vessel"] = vessel
-    halo = periodic_blur(vessel, 3.0)
+    halo = periodic_blur(vessel, 4.0)
     f["vessel_halo"] = halo / halo.max()
 
-    f["blotch"] = smoothstep(-1.4, 1.4, 0.6 * f["large"] + 0.8 * f["mid"]
+    f["blotch"] = smoothstep(-2.2, 2.2, 0.6 * f["large"] + 0.8 * f["mid"]
                              + 0.45 * band_noise(rng, n, 20.0, 60.0, 0.5))
-    cx = 14.0 * band_noise(rng, n, 3.0, 12.0, 1.0)
-    cy = 14.0 * band_noise(rng, n, 3.0, 12.0, 1.0)
-    _, crack_gap = hex_cells(rng, n, cols=9, jitter=0.35, dx=cx, dy=cy)
-    crack_on = smoothstep(-0.3, 0.5, band_noise(rng, n, 3.0, 10.0, 1.0))
-    fine_cx = 4.0 * band_noise(rng, n, 30.0, 90.0, 1.0)
-    fine_cy = 4.0 * band_noise(rng, n, 30.0, 90.0, 1.0)
-    _, fine_gap = hex_cells(rng, n, cols=28, jitter=0.35, dx=fine_cx, dy=fine_cy)
-    fine_on = smoothstep(0.4, 1.2, band_noise(rng, n, 4.0, 16.0, 1.0))
-    f["cracks"] = np.maximum((1.0 - smoothstep(0.0, 0.035, crack_gap)) * crack_on,
-                             0.6 * (1.0 - smoothstep(0.0, 0.03, fine_gap)) * fine_on)
+    cx = 10.0 * band_noise(rng, n, 4.0, 16.0, 1.0)
+    cy = 10.0 * band_noise(rng, n, 4.0, 16.0, 1.0)
+    _, crack_gap = hex_cells(rng, n, cols=14, jitter=0.35, dx=cx, dy=cy)
+    crack_on = smoothstep(-0.8, 0.2, band_noise(rng, n, 3.0, 10.0, 1.0))
+    cracks = (1.0 - smoothstep(0.01, 0.05, crack_gap)) * crack_on
+    f["cracks"] = cracks
+    f["crack_rim"] = np.clip(periodic_blur(cracks, 2.5) * 2.5 - cracks, 0.0, 1.0)
     specks = band_noise(rng, n, 150.0, 400.0, 0.0) + 0.5 * f["fine"]
     f["ash"] = smoothstep(2.9, 3.8, specks) * smoothstep(-0.5, 0.8, f["mid"])
     return f
@@ -229,37 +230,38 @@ def finish(img: np.ndarray, target: tuple[float, float, float]) -> np.ndarray:
 def healthy_liver(f: dict[str, np.ndarray]) -> np.ndarray:
     """Fresh liver: maroon-brown capsule, mottled, lobules, red vessels."""
     n = f["large"].shape[0]
-    hue = smoothstep(-1.5, 1.5, f["hue"])
-    base = mix(rgb((112, 30, 34), n), rgb((128, 42, 28), n), hue)
-    tone = (1.0 + 0.10 * f["large"] + 0.06 * f["mid"] + 0.035 * f["fine"]
-            + 0.025 * f["grain"] + 0.05 * f["lobule_edge"] - 0.07 * f["lobule_centre"])
+    hue = smoothstep(-2.0, 2.0, f["hue"])
+    base = mix(rgb((106, 30, 38), n), rgb((118, 38, 31), n), hue)
+    tone = (1.0 + 0.05 * f["large"] + 0.05 * f["mid"] + 0.035 * f["fine"]
+            + 0.03 * f["grain"] + 0.07 * f["lobule_edge"] - 0.09 * f["lobule_centre"])
     img = base * tone[..., None]
-    img = img * (1.0 - 0.18 * f["vessel_halo"])[..., None]
-    img = mix(img, rgb((92, 10, 22), n), 0.85 * f["vessel"])
-    sheen = f["gloss"] * (0.75 + 0.25 * smoothstep(-1.0, 1.0, f["fine"]))
-    return finish(mix(img, rgb((172, 112, 108), n), 0.22 * sheen), LIVER_HEALTHY_RGB)
+    img = mix(img, rgb((78, 18, 36), n), 0.35 * f["vessel_halo"])
+    img = mix(img, rgb((84, 8, 24), n), 0.75 * f["vessel"])
+    sheen = f["gloss"] * (0.8 + 0.2 * smoothstep(-1.0, 1.0, f["fine"]))
+    return finish(mix(img, rgb((150, 70, 68), n), 0.18 * sheen), LIVER_HEALTHY_RGB)
 
 
 def coagulated_liver(f: dict[str, np.ndarray]) -> np.ndarray:
     """Thermally coagulated liver: pale grey-tan, mottled, ghost vessels."""
     n = f["large"].shape[0]
-    hue = smoothstep(-1.5, 1.5, f["hue"] + 0.5 * f["mid"])
-    base = mix(rgb((200, 190, 186), n), rgb((214, 192, 172), n), hue)
-    tone = (1.0 + 0.045 * f["large"] + 0.035 * f["mid"] + 0.025 * f["fine"]
-            + 0.02 * f["grain"] + 0.025 * f["lobule_edge"] - 0.05 * f["lobule_centre"])
+    hue = smoothstep(-2.0, 2.0, f["hue"] + 0.6 * f["mid"])
+    base = mix(rgb((204, 191, 182), n), rgb((210, 190, 174), n), hue)
+    tone = (1.0 + 0.03 * f["large"] + 0.03 * f["mid"] + 0.025 * f["fine"]
+            + 0.02 * f["grain"] + 0.04 * f["lobule_edge"] - 0.08 * f["lobule_centre"])
     img = base * tone[..., None]
-    img = mix(img, rgb((176, 160, 150), n), 0.30 * f["vessel"] + 0.12 * f["vessel_halo"])
+    img = mix(img, rgb((178, 160, 148), n), 0.30 * f["vessel"] + 0.15 * f["vessel_halo"])
     return finish(img, LIVER_COAGULATED_RGB)
 
 
 def charred_liver(f: dict[str, np.ndarray]) -> np.ndarray:
     """Carbonised tissue: blotchy black-brown, dark cracks, pale ash specks."""
     n = f["large"].shape[0]
-    img = mix(rgb((14, 10, 8), n), rgb((74, 48, 31), n), f["blotch"])
-    tone = 1.0 + 0.10 * f["fine"] + 0.12 * f["grain"] - 0.10 * f["lobule_centre"]
+    img = mix(rgb((12, 9, 7), n), rgb((62, 40, 27), n), f["blotch"])
+    tone = 1.0 + 0.10 * f["fine"] + 0.06 * f["grain"] - 0.10 * f["lobule_centre"]
     img = img * tone[..., None]
     img = img * (1.0 - 0.25 * f["vessel_halo"])[..., None]
-    img = mix(img, rgb((5, 4, 3), n), 0.9 * f["cracks"])
+    img = mix(img, rgb((78, 54, 38), n), 0.35 * f["crack_rim"])
+    img = mix(img, rgb((4, 3, 2), n), 0.9 * f["cracks"])
     return finish(mix(img, rgb((150, 140, 128), n), 0.8 * f["ash"]), LIVER_CHARRED_RGB)
 
 
@@ -400,14 +402,15 @@ def lobe_shape(p: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     t = (x + 1.0) / 2.0
     z *= 1.0 - 0.72 * t ** 1.3
     z *= 0.82 + 0.18 * np.tanh(4.0 * z)            # flatter inferior surface
-    y *= 1.0 - 0.25 * t ** 2
+    y *= (1.0 - 0.45 * t ** 1.5) * (0.92 + 0.08 * np.tanh(3.0 * y))
     z *= 1.0 - 0.25 * smoothstep(0.0, 1.0, -y)     # sharper anterior border
-    y += 0.12 * x ** 2 - 0.05 * x
+    x *= 1.0 + 0.12 * (1.0 - x ** 2) * y           # skewed, D-shaped plan
+    y += 0.15 * x ** 2 - 0.05 * x
     z += -0.10 * x ** 2 + 0.04 * x * y
     q = np.stack([x, y, z], -1)
     for _ in range(6):
         k = rng.normal(0.0, 2.2, 3)
-        q += (0.012 * np.sin(p @ k + rng.uniform(0, 2 * np.pi)))[:, None] * p
+        q += (0.018 * np.sin(p @ k + rng.uniform(0, 2 * np.pi)))[:, None] * p
     q -= (q.max(0) + q.min(0)) / 2.0
     return q * (LOBE_EXTENTS / (q.max(0) - q.min(0)))
 

@@ -10,7 +10,8 @@ spacing, interaction radius, speeds and gravity are in millimetres whatever the 
 One step (substepped): gravity with Nusselt film drag (exact exponential), advance, neighbour grid
 by counting sort, density and near density, double density relaxation (its displacement damped by
 the same drag, so pressure and gravity balance alike at any substep count), velocity from displacement
-(inertia factor I, speed clamp), clotting, viscosity impulses (sigma, beta), removal. Every kernel
+(inertia factor I, speed clamp), clotting, viscosity impulses (sigma, beta), removal. The density pass
+keeps each particle's neighbour list for the relaxation and viscosity passes. Every kernel
 gathers from neighbours and writes only its own particle; the counting sort scatters serially in
 particle order and the pool is compacted serially, so results are bitwise identical across runs and
 thread counts. Work per particle is capped (MAX_NEIGHBOURS in range, MAX_CANDIDATES examined, lowest indices
@@ -24,7 +25,7 @@ import numpy as np
 import taichi as ti
 
 ALIVE, SUCTIONED, LEFT_SURFACE, EXPIRED = 0, 1, 2, 3
-MAX_NEIGHBOURS = 64         # neighbours in range that one particle interacts with, at most
+MAX_NEIGHBOURS = 48         # neighbours in range that one particle interacts with, at most (kept in a list)
 MAX_CANDIDATES = 256        # particles one particle examines, at most (bounds the cost of dense clumps)
 MAX_SUCTION_TOOLS = 8
 MAX_RELAX_FRACTION = 0.5    # largest relaxation displacement per substep, in interaction radii
@@ -101,6 +102,9 @@ class Bleeding:
         self.pos_new = ti.Vector.field(2, ti.f32, capacity)
         self.vel = ti.Vector.field(2, ti.f32, capacity)
         self.vel_new = ti.Vector.field(2, ti.f32, capacity)
+        self.scratch_v2 = ti.Vector.field(2, ti.f32, (2, capacity))  # reordering buffers
+        self.scratch_f = ti.Vector.field(2, ti.f32, capacity)
+        self.scratch_uid = ti.field(ti.i32, capacity)
         self.metric = ti.Vector.field(3, ti.f32, capacity)     # metric at the particle's texel
         self.density = ti.Vector.field(2, ti.f32, capacity)    # rho, rho_near
         self.pressure = ti.Vector.field(2, ti.f32, capacity)   # P, P_near
@@ -111,6 +115,8 @@ class Bleeding:
         self.fate = ti.field(ti.i32, capacity)                 # ALIVE or the reason it leaves
         self.cell = ti.field(ti.i32, capacity)
         self.sorted = ti.field(ti.i32, capacity)
+        self.neighbours = ti.field(ti.i32, (capacity, MAX_NEIGHBOURS))  # found by the density pass, reused after
+        self.neighbour_count = ti.field(ti.i32, capacity)
         self.counters = ti.field(ti.i32, 8)
         self.alive_count = ti.field(ti.i32, ())
         self.suction_tools = ti.Vector.field(4, ti.f32, MAX_SUCTION_TOOLS)  # x, y, z (mm), radius (mm)
@@ -183,6 +189,25 @@ class Bleeding:
         self._spawn_budget[key] = budget - whole
         return self.spawn(key, texel_rc, whole, radius_mm) if whole else 0
 
+    def place(self, grid_xy: np.ndarray) -> None:
+        """Replace the pool by particles at rest at grid positions (N, 2) (benchmarks and tests)."""
+        count = len(grid_xy)
+        if count > self.capacity:
+            raise ValueError(f"{count} particles do not fit a pool of {self.capacity}")
+        self.reset()
+        full = np.zeros((self.capacity, 2), np.float32)
+        full[:count] = grid_xy
+        for name in ("pos", "pos_prev"):
+            getattr(self, name).from_numpy(full)
+        self.vel.from_numpy(np.zeros((self.capacity, 2), np.float32))
+        self.density.from_numpy(np.zeros((self.capacity, 2), np.float32))
+        for name in ("age", "clot"):
+            getattr(self, name).from_numpy(np.zeros(self.capacity, np.float32))
+        self.uid.from_numpy(np.arange(self.capacity, dtype=np.int32))
+        self.fate.from_numpy(np.zeros(self.capacity, np.int32))
+        self.counters[0] = count
+        self.count = count
+
     @ti.kernel
     def _spawn(self, first: ti.i32, count: ti.i32, first_uid: ti.i32, row: ti.i32, col: ti.i32, radius_mm: ti.f32):
         for k in range(count):
@@ -217,6 +242,9 @@ class Bleeding:
             sub = dt_s / substeps
             nu = p["blood_viscosity_mpa_s"] * 1e-3 / p["blood_density_kg_m3"] * 1e6  # mm^2/s
             rest = self.rest_density
+            self._bin(self.count)
+            self._sort(self.count, self.cells_x * self.cells_y)
+            self._reorder(self.count)
             for _ in range(substeps):
                 self._predict(self.count, sub, nu, p["film_thickness_mm"], rest, p["pinning_density"] * rest, p["lifetime_s"])
                 self._bin(self.count)
@@ -336,6 +364,26 @@ class Bleeding:
         for c in range(cells):
             self.cell_count[c] = 0
 
+    @ti.kernel
+    def _reorder(self, n: ti.i32):
+        """Store the (all alive) particles in cell order: neighbours sit close in memory. Stable, deterministic."""
+        for s in range(n):
+            i = self.sorted[s]
+            self.pos_new[s] = self.pos[i]
+            self.vel_new[s] = self.vel[i]
+            self.scratch_v2[0, s] = self.pos_prev[i]
+            self.scratch_v2[1, s] = self.density[i]
+            self.scratch_f[s] = ti.Vector([self.age[i], self.clot[i]])
+            self.scratch_uid[s] = self.uid[i]
+        for s in range(n):
+            self.pos[s] = self.pos_new[s]
+            self.vel[s] = self.vel_new[s]
+            self.pos_prev[s] = self.scratch_v2[0, s]
+            self.density[s] = self.scratch_v2[1, s]
+            self.age[s] = self.scratch_f[s][0]
+            self.clot[s] = self.scratch_f[s][1]
+            self.uid[s] = self.scratch_uid[s]
+
     @ti.func
     def _pair(self, i, j):
         """Grid offset d = x_j - x_i and physical distance r (mm) through the pair's mean metric."""
@@ -374,7 +422,9 @@ class Bleeding:
                                     q = 1.0 - r / h
                                     rho += q * q
                                     rho_near += q * q * q
+                                    self.neighbours[i, seen] = j
                                     seen += 1
+                self.neighbour_count[i] = seen
                 self.density[i] = ti.Vector([rho, rho_near])
                 self.pressure[i] = ti.Vector([k * (rho - rest), k_near * rho_near])
 
@@ -384,28 +434,18 @@ class Bleeding:
         for i in range(n):
             shift = ti.Vector([0.0, 0.0])
             if self.fate[i] == ALIVE:
-                x0, x1, y0, y1 = self._for_neighbours(i)
-                seen, examined = 0, 0
-                for cy in range(y0, y1 + 1):
-                    for cx in range(x0, x1 + 1):
-                        cell = cy * self.cells_x + cx
-                        for s in range(self.cell_start[cell], self.cell_start[cell + 1]):
-                            examined += 1
-                            if examined > MAX_CANDIDATES:
-                                break
-                            j = self.sorted[s]
-                            if j != i and seen < MAX_NEIGHBOURS:
-                                d, r, pair_metric = self._pair(i, j)
-                                if r < h:
-                                    seen += 1
-                                    if r > 1e-6 * h:
-                                        q = 1.0 - r / h
-                                        p = self.pressure[i] + self.pressure[j]
-                                        push = 0.5 * dt * dt * (p[0] * q + p[1] * q * q)  # mm along r_hat
-                                        shift -= push / r * d
-                                    else:  # coincident: separate along a deterministic direction
-                                        angle = 2.0 * math.pi * _hash01(ti.u32(self.uid[i]), ti.u32(self.uid[j]))
-                                        shift -= 0.05 * h * ti.Vector([ti.cos(angle), ti.sin(angle)]) / ti.sqrt(self.metric[i][0] + self.metric[i][2])
+                for k in range(self.neighbour_count[i]):
+                    j = self.neighbours[i, k]
+                    d, r, pair_metric = self._pair(i, j)
+                    if r < h:
+                        if r > 1e-6 * h:
+                            q = 1.0 - r / h
+                            p = self.pressure[i] + self.pressure[j]
+                            push = 0.5 * dt * dt * (p[0] * q + p[1] * q * q)  # mm along r_hat
+                            shift -= push / r * d
+                        else:  # coincident: separate along a deterministic direction
+                            angle = 2.0 * math.pi * _hash01(ti.u32(self.uid[i]), ti.u32(self.uid[j]))
+                            shift -= 0.05 * h * ti.Vector([ti.cos(angle), ti.sin(angle)]) / ti.sqrt(self.metric[i][0] + self.metric[i][2])
                 damping = self.drag[i] * dt  # pressure moves the film against the same drag as gravity
                 if damping > 1e-6:
                     shift *= (1.0 - ti.exp(-damping)) / damping
@@ -447,26 +487,17 @@ class Bleeding:
         for i in range(n):
             v = self.vel[i]
             if self.fate[i] == ALIVE and (sigma > 0.0 or beta > 0.0):
-                x0, x1, y0, y1 = self._for_neighbours(i)
-                seen, examined = 0, 0
-                for cy in range(y0, y1 + 1):
-                    for cx in range(x0, x1 + 1):
-                        cell = cy * self.cells_x + cx
-                        for s in range(self.cell_start[cell], self.cell_start[cell + 1]):
-                            examined += 1
-                            if examined > MAX_CANDIDATES:
-                                break
-                            j = self.sorted[s]
-                            if j != i and seen < MAX_NEIGHBOURS and self.fate[j] == ALIVE:
-                                d, r, m = self._pair(i, j)
-                                if r < h:
-                                    seen += 1
-                                    if r > 1e-6 * h:
-                                        dv = self.vel[i] - self.vel[j]
-                                        u = (m[0] * dv[0] * d[0] + m[1] * (dv[0] * d[1] + dv[1] * d[0]) + m[2] * dv[1] * d[1]) / r
-                                        if u > 0.0:
-                                            impulse = dt * (1.0 - r / h) * (sigma * u + beta * u * u)
-                                            v -= 0.5 * ti.min(impulse, u) / r * d
+                for k in range(self.neighbour_count[i]):
+                    j = self.neighbours[i, k]
+                    if self.fate[j] == ALIVE:
+                        d, r, m = self._pair(i, j)
+                        if 1e-6 * h < r < h:
+                            dv = self.vel[i] - self.vel[j]
+                            u = (m[0] * dv[0] * d[0] + m[1] * (dv[0] * d[1] + dv[1] * d[0]) + m[2] * dv[1] * d[1]) / r
+                            if u > 0.0:
+                                impulse = dt * (1.0 - r / h) * (sigma * u + beta * u * u)
+                                v -= 0.5 * ti.min(impulse, u) / r * d
+            if self.fate[i] == ALIVE:
                 row, col, _ = self._texel(self.pos[i])
                 v, _ = self._clamp_speed(v, self.texel_metric[row, col], max_speed)
             self.vel_new[i] = v

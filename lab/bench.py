@@ -131,7 +131,15 @@ def density_error_against_substeps(substeps: int) -> dict:
         bleeding.step(0.01)
     wall = time.perf_counter() - start
     rho = bleeding.density.to_numpy()[: bleeding.count, 0]
-    return {"substeps": substeps, "density_error_rel": float(rho.mean() / bleeding.rest_density - 1.0), "ms_per_simulated_s": wall / 3.0 * 1000.0}
+    position = bleeding.particle_arrays()["particle_position_mm"]
+    reach = np.linalg.norm(position - position.mean(axis=0), axis=1)
+    bulk = reach < 0.6 * reach.max()  # away from the free edge, where particles miss neighbours
+    return {
+        "substeps": substeps,
+        "density_error_rel": float(rho.mean() / bleeding.rest_density - 1.0),
+        "bulk_density_error_rel": float(rho[bulk].mean() / bleeding.rest_density - 1.0),
+        "ms_per_simulated_s": wall / 3.0 * 1000.0,
+    }
 
 
 def run(out_dir, quick: bool = False, arch: str = "auto") -> dict:
@@ -196,9 +204,9 @@ def render(results: dict) -> str:
         "",
         "Density error: 80 particles released in the hollow of the patch, mean density against rest density after 3 s.",
         "",
-        "| substeps | mean density error | ms per simulated s |",
-        "|---|---|---|",
+        "| substeps | mean density error | bulk (inner 60 %) density error | ms per simulated s |",
+        "|---|---|---|---|",
     ]
     for row in results["bleeding_density"]:
-        lines.append(f"| {row['substeps']} | {row['density_error_rel']:+.1%} | {row['ms_per_simulated_s']:.0f} |")
+        lines.append(f"| {row['substeps']} | {row['density_error_rel']:+.1%} | {row['bulk_density_error_rel']:+.1%} | {row['ms_per_simulated_s']:.0f} |")
     return "\n".join(lines) + "\n"

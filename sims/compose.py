@@ -18,12 +18,12 @@ from PIL import Image
 FIELD_CODES = {"coagulation": 0, "char": 1, "omega": 2, "temperature_c": 3}
 BLOOD_EDGE = (0.25, 0.6)              # film fractions where coverage goes from 0 to 1
 BLOOD_DARK_FILMS = 4.0                # film multiples at which blood reaches its darkest colour
-BLOOD_THIN_RGB = (0.36, 0.01, 0.02)   # fresh blood film over tissue
-BLOOD_THICK_RGB = (0.12, 0.0, 0.01)  # pooled blood
-BLOOD_GLOSS = 0.22                    # strength of the baked highlight on the blood surface
-BLOOD_ABSORPTION = 1.8                # opacity of a film: 1 - exp(-absorption * films); thin blood shows tissue
-GLOSS_REACH = 4                       # texels either side for the slope of the blood surface
-LIGHT_DIR = (-0.4, -0.5, 0.77)        # grid-space light (x = columns, y = rows, z out of the surface)
+BLOOD_THIN_RGB = (0.45, 0.02, 0.03)   # fresh blood film over tissue
+BLOOD_THICK_RGB = (0.16, 0.0, 0.01)  # pooled blood
+BLOOD_GLOSS = 0.35                    # strength of the baked highlight on the blood surface
+BLOOD_ABSORPTION = 3.0                # opacity of a film: 1 - exp(-absorption * films); thin blood shows tissue
+GLOSS_REACH = 6                       # texels either side for the slope of the blood surface
+LIGHT_DIR = (-0.55, -0.65, 0.52)       # grid-space light (x = columns, y = rows, z out of the surface)
 
 
 class TextureError(ValueError):
@@ -129,6 +129,6 @@ class Composer:
             dx = thickness[sr, ti.min(sc + GLOSS_REACH, width - 1)] - thickness[sr, ti.max(sc - GLOSS_REACH, 0)]
             dy = thickness[ti.min(sr + GLOSS_REACH, height - 1), sc] - thickness[ti.max(sr - GLOSS_REACH, 0), sc]
             normal = ti.Vector([-dx, -dy, 2.0 * GLOSS_REACH * texel_mm]).normalized()
-            gloss = BLOOD_GLOSS * ti.max(normal.dot(half), 0.0) ** 16
+            gloss = BLOOD_GLOSS * ti.max(normal.dot(half), 0.0) ** 24
             alpha = cover * (1.0 - ti.exp(-BLOOD_ABSORPTION * films))
             self._write(r, c, self.color[sr, sc] * (1.0 - alpha) + blood * alpha + gloss * cover)

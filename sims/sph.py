@@ -584,7 +584,7 @@ class Bleeding:
         self.splat.fill(0)
         if self.count:
             self._splat(self.count)
-        reach_mm = 0.5 * self.params["interaction_radius_mm"]
+        reach_mm = 0.6 * self.params["interaction_radius_mm"]
         mask = self.surface.mask
         radius = [max(1, min(int(round(reach_mm / float(np.median(np.linalg.norm(t[mask], axis=1))))), 64)) for t in (self.surface.tangent_u, self.surface.tangent_v)]
         self._blur_and_fade(radius[0], radius[1], self.particle_volume_ml * 1e3 / SPLAT_SCALE, fade)

@@ -125,7 +125,7 @@ def density_error_against_substeps(substeps: int) -> dict:
     values["substeps"] = substeps
     bleeding = Bleeding(surface, values, (0.0, 0.0, -9810.0), 200)
     distance = np.linalg.norm(surface.position_mm[..., :2] - (-7.0, 10.0), axis=-1) + np.where(surface.mask, 0, np.inf)
-    bleeding.spawn("blob", np.unravel_index(np.argmin(distance), distance.shape), 80, 1.0)
+    bleeding.spawn(np.unravel_index(np.argmin(distance), distance.shape), 80, 1.0)
     start = time.perf_counter()
     for _ in range(300):
         bleeding.step(0.01)

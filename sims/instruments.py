@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import taichi as ti
 
+from sims import paths
 from sims.backend import cache_dir
 
 GRID_PADDING_MM = 3.0  # matches the largest contact distance (sims.params)
@@ -61,37 +62,14 @@ class Instrument:
 
     def pose_at(self, t_s: float) -> Pose:
         """Pose at time t: keyframe values interpolated linearly (energized holds its last value)."""
+        base = self.base
         return Pose(
-            np.asarray(self._lerp("position_mm", t_s), np.float64),
-            np.asarray(self._lerp("direction", t_s), np.float64),
-            float(self._lerp("roll_deg", t_s)),
-            bool(self._hold("energized", t_s)),
-            float(self._lerp("tip_temperature_c", t_s)),
+            np.asarray(paths.interpolate(self.path, "position_mm", t_s, base.position_mm), np.float64),
+            np.asarray(paths.interpolate(self.path, "direction", t_s, base.direction), np.float64),
+            float(paths.interpolate(self.path, "roll_deg", t_s, base.roll_deg)),
+            bool(paths.hold(self.path, "energized", t_s, base.energized)),
+            float(paths.interpolate(self.path, "tip_temperature_c", t_s, base.tip_temperature_c)),
         )
-
-    def _keys(self, name):
-        return [(frame["t_s"], frame[name]) for frame in self.path if frame[name] is not None]
-
-    def _lerp(self, name, t_s):
-        keys = self._keys(name)
-        if not keys:
-            return getattr(self.base, name)
-        times = [time for time, _ in keys]
-        index = int(np.searchsorted(times, t_s, side="right"))
-        if index == 0:
-            return keys[0][1]
-        if index == len(keys):
-            return keys[-1][1]
-        (t0, v0), (t1, v1) = keys[index - 1], keys[index]
-        w = (t_s - t0) / (t1 - t0)
-        return (1.0 - w) * np.asarray(v0, np.float64) + w * np.asarray(v1, np.float64)
-
-    def _hold(self, name, t_s):
-        value = getattr(self.base, name)
-        for time, frame_value in self._keys(name):
-            if time <= t_s:
-                value = frame_value
-        return value
 
 
 # --- mesh instruments: signed distance grid --------------------------------------------------

@@ -24,6 +24,8 @@ import math
 import numpy as np
 import taichi as ti
 
+from sims import paths
+
 ALIVE, SUCTIONED, LEFT_SURFACE, EXPIRED = 0, 1, 2, 3
 MAX_NEIGHBOURS = 48         # neighbours in range that one particle interacts with, at most (kept in a list)
 MAX_CANDIDATES = 256        # particles one particle examines, at most (bounds the cost of dense clumps)
@@ -126,12 +128,7 @@ class Bleeding:
         self.blur_tmp = ti.field(ti.f32, (height, width))
         self.texel_area = ti.field(ti.f32, (height, width))
         self.texel_area.from_numpy(np.where(surface.mask, surface.texel_area_mm2, 1.0).astype(np.float32))
-        self.count = 0
-        self.step_index = 0
-        self._spawn_budget = {}
-        self._suction_budget = 0.0
-        self.pool_full_reported = False   # the pool was full when blood should have spawned
-        self.pool_full_logged = False     # a front end has told the user
+        self.reset()
 
     def reset(self) -> None:
         """Empty the pool and zero the counters."""
@@ -139,8 +136,8 @@ class Bleeding:
         self.counters.fill(0)
         self.thickness.fill(0.0)
         self._spawn_budget, self._suction_budget = {}, 0.0
-        self.pool_full_reported = False
-        self.pool_full_logged = False
+        self.pool_full_reported = False   # the pool was full when blood should have spawned
+        self.pool_full_logged = False     # a front end has told the user
 
     # --- set-up -------------------------------------------------------------------------------
     def _cell_size(self, radius_mm: float):
@@ -168,7 +165,7 @@ class Bleeding:
         return particle_volume_ml(self.params)
 
     # --- spawning -----------------------------------------------------------------------------
-    def spawn(self, key, texel_rc, count: int, radius_mm: float) -> int:
+    def spawn(self, texel_rc, count: int, radius_mm: float) -> int:
         """Add `count` particles in a disk of radius_mm around texel (row, col); returns how many fit."""
         room = self.capacity - self.count
         placed = max(0, min(count, room))
@@ -187,7 +184,7 @@ class Bleeding:
         budget = self._spawn_budget.get(key, 0.0) + rate_ml_s * dt_s / self.particle_volume_ml
         whole = int(math.floor(budget))
         self._spawn_budget[key] = budget - whole
-        return self.spawn(key, texel_rc, whole, radius_mm) if whole else 0
+        return self.spawn(texel_rc, whole, radius_mm) if whole else 0
 
     def place(self, grid_xy: np.ndarray) -> None:
         """Replace the pool by particles at rest at grid positions (N, 2) (benchmarks and tests)."""
@@ -279,6 +276,7 @@ class Bleeding:
             take = min(candidates, int(self._suction_budget))
             self._suction_budget -= take
             self._remove_suctioned(self.count, len(tools), take / candidates, self.step_index)
+        # unused capacity does not pile up while the tool hovers over dry tissue
         self._suction_budget = min(self._suction_budget, 1.0 + sum(rate for _, _, rate in tools) * dt_s / self.particle_volume_ml)
 
     @ti.func
@@ -626,27 +624,15 @@ class BleedPoint:
     def __init__(self, item: dict):
         self.name, self.item = item["name"], item
 
-    def _lerp(self, name, t_s):
-        keys = [(frame["t_s"], frame[name]) for frame in self.item["path"] if frame[name] is not None]
-        if not keys:
-            return np.asarray(self.item[name], np.float64)
-        times = [time for time, _ in keys]
-        index = int(np.searchsorted(times, t_s, side="right"))
-        if index in (0, len(keys)):
-            return np.asarray(keys[0 if index == 0 else -1][1], np.float64)
-        (t0, v0), (t1, v1) = keys[index - 1], keys[index]
-        w = (t_s - t0) / (t1 - t0)
-        return (1.0 - w) * np.asarray(v0, np.float64) + w * np.asarray(v1, np.float64)
-
     def position_at(self, t_s: float) -> np.ndarray:
-        return self._lerp("position_mm", t_s)
+        return np.asarray(paths.interpolate(self.item["path"], "position_mm", t_s, self.item["position_mm"]), np.float64)
 
     def rate_at(self, t_s: float) -> float:
         """ml/s before coagulation; 0 outside [start_s, stop_s)."""
         stop = self.item["stop_s"]
         if t_s < self.item["start_s"] or (stop is not None and t_s >= stop):
             return 0.0
-        return float(self._lerp("rate_ml_s", t_s))
+        return float(paths.interpolate(self.item["path"], "rate_ml_s", t_s, self.item["rate_ml_s"]))
 
 
 def auto_capacity(bleed_points: list, params: dict, duration_s: float) -> int:

@@ -38,7 +38,7 @@ def test_lone_particle_accelerates_at_g_sin_theta(width_mm, length_mm):
     surface = build_surface(plane_mesh(width_mm, length_mm, slope_deg=30.0), 128)
     bleeding = bleeding_on(surface, viscosity_sigma_1_s=0.0, viscosity_beta_s_mm=0.0, blood_viscosity_mpa_s=0.0,
                            inertia=1.0, max_speed_mm_s=1.0e5)
-    bleeding.spawn("p", (8, 64), 1, 0.0)  # near the top (+y, uphill)
+    bleeding.spawn((8, 64), 1, 0.0)  # near the top (+y, uphill)
     start = bleeding.particle_arrays()["particle_position_mm"][0].copy()
     dt, steps = 0.01, 10
     for _ in range(steps):
@@ -96,7 +96,7 @@ def settle(substeps: int, seconds: float = 3.0, particles: int = 80):
     positions = surface.position_mm
     distance = np.linalg.norm(positions[..., :2] - HOLLOW_MM, axis=-1) + np.where(surface.mask, 0, np.inf)
     texel = np.unravel_index(np.argmin(distance), distance.shape)
-    bleeding.spawn("blob", texel, particles, 1.0)
+    bleeding.spawn(texel, particles, 1.0)
     steps = int(round(seconds / 0.01))
     for step in range(steps):
         bleeding.step(0.01)
@@ -140,7 +140,7 @@ def test_hard_cases_stay_finite_and_bounded(patch_256, case):
     changes = {"rest_density": 50.0} if case == "rest_density_50" else {}
     bleeding = bleeding_on(patch_256, **changes)
     texel = (128, 128) if case != "border" else (255, 3)
-    bleeding.spawn("blob", texel, 2000, 2.0)
+    bleeding.spawn(texel, 2000, 2.0)
     run_steps(bleeding, 50, 0.1 if case == "time_step_x10" else 0.01)
     assert_bounded(bleeding, DEFAULTS["max_speed_mm_s"])
     if case == "border":
@@ -149,7 +149,7 @@ def test_hard_cases_stay_finite_and_bounded(patch_256, case):
 
 def test_dense_clump_of_100k_particles_in_one_cell(patch_256):
     bleeding = bleeding_on(patch_256, capacity=100_000)
-    assert bleeding.spawn("clump", (128, 128), 100_000, 0.0) == 100_000  # all on one point
+    assert bleeding.spawn((128, 128), 100_000, 0.0) == 100_000  # all on one point
     run_steps(bleeding, 3, 0.01)
     assert_bounded(bleeding, DEFAULTS["max_speed_mm_s"])
     assert bleeding.accounting()["spawned"] == 100_000
@@ -163,14 +163,14 @@ def test_every_slider_at_each_end(patch_256, end):
             continue
         bleeding.params.update(DEFAULTS, **{name: spec.min if end == "min" else spec.max})
         bleeding.reset()
-        bleeding.spawn("blob", (128, 128), 400, 1.0)
+        bleeding.spawn((128, 128), 400, 1.0)
         run_steps(bleeding, 5, 0.01)
         assert_bounded(bleeding, bleeding.params["max_speed_mm_s"], name)
 
 
 def test_pool_full_is_counted_not_silent(patch_256):
     bleeding = bleeding_on(patch_256, capacity=100)
-    assert bleeding.spawn("a", (128, 128), 150, 1.0) == 100
+    assert bleeding.spawn((128, 128), 150, 1.0) == 100
     counts = bleeding.accounting()
     assert counts["spawned"] == 100 and counts["dropped_pool_full"] == 50
 
@@ -234,8 +234,8 @@ def test_suction_removes_blood_inside_its_radius_only(patch_256):
     bleeding = bleeding_on(patch_256, clotting_rate_1_s=10.0, rest_speed_mm_s=50.0)
     centre = patch_256.position_mm[128, 128]
     far = patch_256.position_mm[128, 200]
-    bleeding.spawn("near", (128, 128), 200, 1.0)
-    bleeding.spawn("far", (128, 200), 200, 1.0)
+    bleeding.spawn((128, 128), 200, 1.0)
+    bleeding.spawn((128, 200), 200, 1.0)
     for _ in range(20):  # let it clot in place
         bleeding.step(0.01)
     before = bleeding.particle_arrays()["particle_position_mm"]

@@ -53,7 +53,8 @@ class Instrument:
     shape: dict
     base: Pose
     path: list = field(default_factory=list)
-    suction: dict | None = None  # {radius_mm, rate_ml_s}: removes blood while the instrument is on
+    suction: dict | None = None  # {radius_mm, rate_ml_s}: a sucker; removes blood while on, never heats
+    override: Pose | None = None  # a pose set live (browser), used instead of the scripted path
 
     @classmethod
     def from_config(cls, item: dict) -> "Instrument":
@@ -61,7 +62,10 @@ class Instrument:
         return cls(item["name"], item["shape"], base, item["path"], item.get("suction"))
 
     def pose_at(self, t_s: float) -> Pose:
-        """Pose at time t: keyframe values interpolated linearly (energized holds its last value)."""
+        """Pose at time t: the live override if set, else keyframe values interpolated linearly
+        (energized holds its last value)."""
+        if self.override is not None:
+            return self.override
         base = self.base
         return Pose(
             np.asarray(paths.interpolate(self.path, "position_mm", t_s, base.position_mm), np.float64),
@@ -161,7 +165,7 @@ class InstrumentFields:
     """Per-instrument pose and shape in Taichi fields, and their signed distance as a ti.func."""
 
     def __init__(self, instruments: list):
-        self.instruments = instruments
+        self.instruments = list(instruments)
         count = max(len(instruments), 1)
         self.count = len(instruments)
         self.shape_code = ti.field(ti.i32, count)

@@ -56,7 +56,7 @@ class Scene:
             from sims.cautery import Cautery
             from sims.instruments import InstrumentFields
 
-            self.instrument_fields = InstrumentFields(self.instruments)
+            self.instrument_fields = InstrumentFields([tool for tool in self.instruments if tool.suction is None])
             self.cautery = Cautery(self.surface, config["tissue"], config["cautery"], self.instrument_fields)
         if "bleeding" in self.models:
             from scipy.spatial import cKDTree
@@ -114,6 +114,15 @@ class Scene:
             texel = self.texel_near(point.position_at(self.time_s))
             rates[point.name] = point.rate_at(self.time_s) * (1.0 - self.coagulated_fraction(texel))
         return rates
+
+    def add_bleed_point(self, name: str, position_mm, rate_ml_s: float, radius_mm: float = 0.5):
+        """A new bleed point from now on (bleeding model only); returns it."""
+        from sims.sph import BleedPoint
+
+        point = BleedPoint({"name": name, "position_mm": [float(v) for v in position_mm], "rate_ml_s": float(rate_ml_s),
+                            "radius_mm": float(radius_mm), "start_s": 0.0, "stop_s": None, "path": []})
+        self.bleed_points.append(point)
+        return point
 
     def _bleed(self, dt: float) -> None:
         for point in self.bleed_points:

@@ -1,10 +1,12 @@
-"""CLI: python -m lab run SCENE --out DIR [...] | bench [--quick] --out DIR. Exit codes: 0 done, 2 bad input, 3 non-finite simulation."""
+"""CLI: python -m lab serve [SCENE] | run SCENE --out DIR [...] | bench [--quick] --out DIR. Exit codes: 0 done, 2 bad input, 3 non-finite simulation."""
 import argparse
 import sys
 from pathlib import Path
 
 from sims.backend import ARCH_CHOICES, ArchUnavailable
-from sims.config import ConfigError
+from sims.config import REPO_ROOT, ConfigError
+
+DEFAULT_SCENE = REPO_ROOT / "scenes" / "default.yaml"
 
 
 def _positive(text: str) -> float:
@@ -20,6 +22,11 @@ def _positive(text: str) -> float:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m lab", description="Surgical surface-effects lab: cautery burn marks in texture space.")
     commands = parser.add_subparsers(dest="command", required=True)
+    serve = commands.add_parser("serve", help="open the browser lab on a scene (default scenes/default.yaml)")
+    serve.add_argument("scene", nargs="?", default=str(DEFAULT_SCENE), help="scene YAML file")
+    serve.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1: this machine only)")
+    serve.add_argument("--port", type=int, default=8080)
+    serve.add_argument("--arch", choices=ARCH_CHOICES, default="auto", help="Taichi device: auto (GPU if present, else CPU), cpu or gpu")
     run = commands.add_parser("run", help="run a scene headless and write metrics.json, final.png, state.npz")
     run.add_argument("scene", help="scene YAML file")
     run.add_argument("--out", required=True, help="output folder")
@@ -37,6 +44,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
+    if args.command == "serve":
+        return _serve(args)
     if args.command == "bench":
         from lab import bench
 
@@ -62,6 +71,23 @@ def main(argv=None) -> int:
         print(f"error: {args.out}: --out: cannot write outputs: {exc.strerror or exc}", file=sys.stderr)
         return 2
     print(f"{metrics['scene']}: {metrics['steps']} steps in {metrics['wall_s']:.2f} s on {metrics['arch']} -> {args.out}")
+    return 0
+
+
+def _serve(args) -> int:
+    from lab import app
+
+    try:
+        app.serve(args.scene, args.host, args.port, args.arch)
+    except ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except ArchUnavailable as exc:
+        print(f"error: {args.scene}: --arch: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:
+        print(f"error: --port {args.port}: cannot serve on {args.host}: {exc.strerror or exc}", file=sys.stderr)
+        return 2
     return 0
 
 

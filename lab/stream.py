@@ -1,0 +1,387 @@
+"""Stream a changing texture on a static mesh to every browser (viser) without blanking it.
+
+viser has no message that updates a mesh texture in place, and re-sending a mesh blanks it in the
+browser while the new GLB parses (DESIGN section 5). So the mesh is cut into K x K UV tiles (a
+triangle goes to the tile of its UV centroid); every tile is its own GLB node textured with the crop
+of the texture over its UV box plus a margin. An update re-sends only the tiles whose crop changed,
+each as a NEW node added visible over the old one (the newest identical copy draws last and wins);
+the old node is removed only `hide_after_s` later, when every browser has long shown the new one.
+Node names come from a capped pool and are re-used (which keeps viser's replay buffer bounded), and
+replacement tiles are sent at most `max_tiles_per_s`: a tile that changes faster is sent later with
+its then newest crop, so stale textures are dropped instead of queued.
+
+Call `update` and `close` from one thread (the simulation thread); a lock makes a `close` from
+another thread safe too.
+"""
+from __future__ import annotations
+
+import io
+import json
+import struct
+import threading
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from PIL import Image
+
+_MARGIN_TEXELS = 2
+_LINEAR, _CLAMP = 9729, 33071  # glTF sampler constants
+
+
+def _welded_normal_sums(positions: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Per vertex, the area-weighted normal sum (V, 3) of the WHOLE mesh with vertices welded by position, so UV
+    seams do not split normals."""
+    positions = np.asarray(positions, np.float64)
+    _, weld = np.unique(positions.round(6), axis=0, return_inverse=True)
+    weld = weld.reshape(-1)
+    sums = np.zeros((weld.max() + 1, 3))
+    cross = _face_cross(positions, faces)
+    for corner in range(3):
+        np.add.at(sums, weld[faces[:, corner]], cross)
+    return sums[weld]
+
+
+def _face_cross(positions: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(F, 3) cross products of the triangles' edges (twice the area times the unit normal), as three.js sums them."""
+    tri = np.asarray(positions, np.float64)[faces]
+    return np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+
+
+def _normal_ghosts(positions: np.ndarray, faces: np.ndarray, target: np.ndarray):
+    """Invisible triangles that make a tile's recomputed normals equal the whole mesh's.
+
+    The viser client recomputes the vertex normals of every GLB mesh from the mesh's own triangles
+    (three.js computeVertexNormals: per vertex index, the sum of the adjacent triangles' edge cross
+    products) and ignores any normals sent. A vertex on a tile border misses the triangles of the
+    neighbouring tile (across a UV seam, those of its other copies too) and would shade differently
+    from its neighbour. For each such vertex p we add one ghost triangle (p, p + L t1, p + L t2) with
+    t1 x t2 = m / |m| and L^2 = |m|, m the missing sum: its cross product is exactly m. A morph
+    target (weight 1) moves the two new corners back onto p, so the ghost is drawn with zero area and
+    never shows, while computeVertexNormals (which reads the un-morphed positions) counts it.
+    Returns (new corner positions (2k, 3), the vertex each copies its UV from (2k,), ghost faces (k, 3)
+    indexed after the existing vertices, morph deltas of the new corners (2k, 3))."""
+    own = np.zeros((len(positions), 3))
+    cross = _face_cross(positions, faces)
+    for corner in range(3):
+        np.add.at(own, faces[:, corner], cross)
+    missing = target - own
+    size = np.linalg.norm(missing, axis=1)
+    use = np.flatnonzero(size > 1e-5 * np.maximum(np.linalg.norm(target, axis=1), 1e-30))
+    n = missing[use] / np.maximum(size[use, None], 1e-30)
+    helper = np.where(np.abs(n[:, :1]) < 0.9, np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 1.0, 0.0]]))
+    t1 = np.cross(n, helper)
+    t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
+    t2 = np.cross(n, t1)
+    length = np.sqrt(size[use])[:, None]
+    p = np.asarray(positions, np.float64)[use]
+    extra = np.stack([p + length * t1, p + length * t2], axis=1).reshape(-1, 3).astype(np.float32)
+    base = len(positions) + 2 * np.arange(len(use))
+    ghost_faces = np.stack([use, base, base + 1], axis=1)
+    source = np.repeat(use, 2)
+    delta = np.asarray(positions, np.float32)[source] - extra
+    return extra, source, ghost_faces, delta
+
+
+def _pad4(data: bytes, fill: bytes = b"\x00") -> bytes:
+    return data + fill * (-len(data) % 4)
+
+
+class _TileGeometry:
+    """One tile's triangles, its crop box in a (H, W) texture, and the GLB bytes except the image."""
+
+    def __init__(self, positions, uv, faces, morph_ids, morph_delta, shape, margin: int, roughness: float):
+        height, width = shape
+        x = uv[:, 0].astype(np.float64) * width
+        y = (1.0 - uv[:, 1].astype(np.float64)) * height  # image rows: row 0 is v = 1
+        self.c0 = max(int(np.floor(x.min())) - margin, 0)
+        self.c1 = min(int(np.ceil(x.max())) + margin, width)
+        self.r0 = max(int(np.floor(y.min())) - margin, 0)
+        self.r1 = min(int(np.ceil(y.max())) + margin, height)
+        # glTF texture coordinates: (0, 0) is the top-left texel corner of the image
+        st = np.stack([(x - self.c0) / (self.c1 - self.c0), (y - self.r0) / (self.r1 - self.r0)], axis=1).astype(np.float32)
+        index_type, index_dtype = (5123, np.uint16) if len(positions) < 65536 else (5125, np.uint32)
+        chunks, views, accessors = [], [], []
+        offset = 0
+
+        def view(data: bytes, target=None):
+            nonlocal offset
+            entry = {"buffer": 0, "byteOffset": offset, "byteLength": len(data)}
+            if target is not None:
+                entry["target"] = target
+            views.append(entry)
+            chunks.append(_pad4(data))
+            offset += len(chunks[-1])
+            return len(views) - 1
+
+        positions = np.ascontiguousarray(positions, np.float32)
+        attributes = {}
+        accessors.append({"bufferView": view(positions.tobytes(), 34962), "componentType": 5126, "count": len(positions), "type": "VEC3",
+                          "min": positions.min(axis=0).tolist(), "max": positions.max(axis=0).tolist()})
+        attributes["POSITION"] = len(accessors) - 1
+        accessors.append({"bufferView": view(st.tobytes(), 34962), "componentType": 5126, "count": len(st), "type": "VEC2"})
+        attributes["TEXCOORD_0"] = len(accessors) - 1
+        accessors.append({"bufferView": view(np.ascontiguousarray(faces, index_dtype).tobytes(), 34963), "componentType": index_type, "count": int(faces.size), "type": "SCALAR"})
+        indices = len(accessors) - 1
+        primitive = {"attributes": attributes, "indices": indices, "material": 0}
+        mesh = {"primitives": [primitive]}
+        if len(morph_ids):
+            # a sparse morph target: zero everywhere except the ghost corners (see _normal_ghosts)
+            delta = np.ascontiguousarray(morph_delta, np.float32)
+            accessors.append({"componentType": 5126, "count": len(positions), "type": "VEC3",
+                              "min": np.minimum(delta.min(axis=0), 0).tolist(), "max": np.maximum(delta.max(axis=0), 0).tolist(),
+                              "sparse": {"count": len(morph_ids),
+                                         "indices": {"bufferView": view(np.ascontiguousarray(morph_ids, index_dtype).tobytes()), "componentType": index_type},
+                                         "values": {"bufferView": view(delta.tobytes())}}})
+            primitive["targets"] = [{"POSITION": len(accessors) - 1}]
+            mesh["weights"] = [1.0]
+        self._geometry = b"".join(chunks)
+        self._json = {
+            "asset": {"version": "2.0", "generator": "tissue-lab stream"},
+            "scene": 0,
+            "scenes": [{"nodes": [0]}],
+            "nodes": [{"mesh": 0}],
+            "meshes": [mesh],
+            "materials": [{"pbrMetallicRoughness": {"baseColorTexture": {"index": 0}, "metallicFactor": 0.0, "roughnessFactor": roughness}}],
+            "samplers": [{"magFilter": _LINEAR, "minFilter": _LINEAR, "wrapS": _CLAMP, "wrapT": _CLAMP}],
+            "textures": [{"sampler": 0, "source": 0}],
+            "images": [{"bufferView": len(views), "mimeType": "image/png"}],
+            "accessors": accessors,
+            "bufferViews": views + [{"buffer": 0, "byteOffset": len(self._geometry), "byteLength": 0}],
+            "buffers": [{"byteLength": 0}],
+        }
+
+    def crop(self, rgb: np.ndarray) -> np.ndarray:
+        return rgb[self.r0:self.r1, self.c0:self.c1]
+
+    def glb(self, image: bytes, mime: str) -> bytes:
+        doc = self._json
+        doc["images"][0]["mimeType"] = mime
+        doc["bufferViews"][-1]["byteLength"] = len(image)
+        binary = self._geometry + _pad4(image)
+        doc["buffers"][0]["byteLength"] = len(binary)
+        text = _pad4(json.dumps(doc, separators=(",", ":")).encode(), b" ")
+        total = 12 + 8 + len(text) + 8 + len(binary)
+        return b"".join([struct.pack("<4sII", b"glTF", 2, total), struct.pack("<I4s", len(text), b"JSON"), text, struct.pack("<I4s", len(binary), b"BIN\x00"), binary])
+
+
+@dataclass
+class _Node:
+    name: str
+    handle: object = None
+    remove_at: float = 0.0
+
+
+@dataclass
+class _Tile:
+    positions: np.ndarray            # (m, 3) float32, mm: the tile's vertices, then its normal ghosts
+    uv: np.ndarray                   # (m, 2) OBJ-convention UVs of those vertices
+    faces: np.ndarray                # (n, 3) indices into positions
+    morph_ids: np.ndarray            # (k,) ghost corners, moved onto their vertex by a morph target
+    morph_delta: np.ndarray          # (k, 3)
+    geometry: _TileGeometry | None = None
+    sent: np.ndarray | None = None   # the crop last handed to viser
+    sent_at: float = -1.0
+    node: _Node | None = None        # the newest node showing this tile
+
+
+class TextureStream:
+    """Streams a changing texture on a static mesh to every browser without blanking."""
+
+    def __init__(self, server, surface, name: str = "/tissue", tiles: int = 8, hide_after_s: float = 3.0,
+                 max_pool: int | None = None, max_tiles_per_s: float | None = None, image_format: str = "png",
+                 seamless_normals: bool = True, roughness: float = 0.7, receive_shadow: bool = True):
+        """server: viser.ViserServer. surface: anything with vertices_mm (V, 3), faces (F, 3) and uv (V, 2) in [0, 1]
+        (OBJ convention, v up), e.g. sims.surface.TissueSurface. name: the scene node holding the tiles.
+        tiles: K, for K x K UV tiles. hide_after_s: how long a replaced tile node stays under its successor before it
+        is removed (longer than the slowest browser's lag; 3 s was enough in software WebGL, 1 s was not).
+        max_pool: nodes allowed beyond one per tile, i.e. replaced tiles not yet removed (default K^2).
+        max_tiles_per_s: replacement tiles sent per second at most, spread evenly (default max_pool / hide_after_s,
+        which keeps the pool from running dry). image_format: "png" (exact) or "jpeg" (quality 90, no chroma
+        subsampling: about a third of the bytes at 512^2, not bit-exact). seamless_normals: add invisible triangles so
+        the normals the browser recomputes per tile equal those of the whole mesh welded at UV seams.
+        roughness: the material's PBR roughness (metalness 0). receive_shadow: shadows of other objects fall on it."""
+        if tiles < 1:
+            raise ValueError("tiles must be >= 1")
+        if image_format not in ("png", "jpeg"):
+            raise ValueError("image_format must be 'png' or 'jpeg'")
+        self.server = server
+        self.name = "/" + name.strip("/")
+        self.tiles = int(tiles)
+        self.hide_after_s = float(hide_after_s)
+        self.image_format = image_format
+        self.roughness = float(roughness)
+        self.receive_shadow = bool(receive_shadow)
+        self._lock = threading.Lock()
+        self._closed = False
+        positions = np.asarray(surface.vertices_mm, np.float32)
+        all_faces = np.asarray(surface.faces, np.int64)
+        uv = np.asarray(surface.uv, np.float32)
+        target = _welded_normal_sums(positions, all_faces) if seamless_normals else None
+        centroid = uv[all_faces].mean(axis=1)
+        col = np.clip((centroid[:, 0] * tiles).astype(np.int64), 0, tiles - 1)
+        row = np.clip(((1.0 - centroid[:, 1]) * tiles).astype(np.int64), 0, tiles - 1)
+        key = row * tiles + col
+        self._tiles: list[_Tile] = []
+        for tile_key in np.unique(key):
+            vertex_ids, local = np.unique(all_faces[key == tile_key], return_inverse=True)
+            tile_positions, tile_uv, faces = positions[vertex_ids], uv[vertex_ids], local.reshape(-1, 3)
+            morph_ids, morph_delta = np.zeros(0, np.int64), np.zeros((0, 3), np.float32)
+            if target is not None:
+                extra, source, ghost_faces, morph_delta = _normal_ghosts(tile_positions, faces, target[vertex_ids])
+                morph_ids = len(tile_positions) + np.arange(len(extra))
+                tile_positions = np.concatenate([tile_positions, extra])
+                tile_uv = np.concatenate([tile_uv, tile_uv[source]])
+                faces = np.concatenate([faces, ghost_faces])
+            self._tiles.append(_Tile(tile_positions, tile_uv, faces, morph_ids, morph_delta))
+        self.max_pool = tiles * tiles if max_pool is None else max(int(max_pool), 0)
+        if max_tiles_per_s is None:
+            max_tiles_per_s = self.max_pool / self.hide_after_s if self.hide_after_s > 0 else float("inf")
+        self.max_tiles_per_s = float(max_tiles_per_s)
+        self._tokens, self._tokens_at = 0.0, None
+        self._max_nodes = len(self._tiles) + self.max_pool
+        self._names: list[str] = []      # every node name this stream has used
+        self._free: list[str] = []       # names not in the scene now
+        self._retiring: list[_Node] = []  # replaced nodes, oldest first
+        self._shape = None
+        self.stats = {"updates": 0, "tiles_sent": 0, "bytes": 0, "tiles_deferred": 0, "python_s": 0.0}
+        self._root = server.scene.add_frame(self.name, show_axes=False)
+
+    # --- public -----------------------------------------------------------------------------
+    @property
+    def node_count(self) -> int:
+        """Tile nodes in the scene now (one per tile plus the replaced ones not yet removed)."""
+        return sum(tile.node is not None for tile in self._tiles) + len(self._retiring)
+
+    def update(self, rgb: np.ndarray) -> dict:
+        """Send the tiles whose texture crop changed since the last update. rgb: (H, W, 3) uint8, image orientation.
+        Returns {"tiles_sent": int, "bytes": int} (bytes = size of the GLB/texture payload handed to viser), and
+        "tiles_deferred": changed tiles left for a later update by the rate limit or the pool cap."""
+        start = time.perf_counter()
+        rgb = np.asarray(rgb)
+        if rgb.ndim != 3 or rgb.shape[2] < 3 or rgb.dtype != np.uint8:
+            raise ValueError(f"expected an (H, W, 3) uint8 image, got {rgb.dtype} {rgb.shape}")
+        rgb = rgb[:, :, :3]
+        sent = size = deferred = 0
+        with self._lock:
+            if self._closed:
+                return {"tiles_sent": 0, "bytes": 0, "tiles_deferred": 0}
+            now = time.monotonic()
+            self._remove_retired(now)
+            if rgb.shape[:2] != self._shape:
+                self._layout(rgb.shape[:2])
+            self._refill(now)
+            changed = [t for t in self._tiles if t.sent is None or not np.array_equal(t.sent, t.geometry.crop(rgb))]
+            changed.sort(key=lambda t: t.sent_at)  # the longest-waiting tiles first when the budget runs short
+            for tile in changed:
+                replacing = tile.node is not None
+                if replacing and self._tokens < 1.0:
+                    deferred += 1
+                    continue
+                name = self._take_name()
+                if name is None:
+                    deferred += 1
+                    continue
+                crop = np.array(tile.geometry.crop(rgb))  # a copy: the caller may reuse its buffer
+                glb = tile.geometry.glb(*self._encode(crop))
+                handle = self.server.scene.add_glb(name, glb, visible=True, cast_shadow=False, receive_shadow=self.receive_shadow)
+                if replacing:
+                    self._tokens -= 1.0
+                    tile.node.remove_at = now + self.hide_after_s
+                    self._retiring.append(tile.node)
+                tile.node, tile.sent, tile.sent_at = _Node(name, handle), crop, now
+                sent += 1
+                size += len(glb)
+            self.stats["updates"] += 1
+            self.stats["tiles_sent"] += sent
+            self.stats["bytes"] += size
+            self.stats["tiles_deferred"] += deferred
+            self.stats["python_s"] += time.perf_counter() - start
+        return {"tiles_sent": sent, "bytes": size, "tiles_deferred": deferred}
+
+    def close(self) -> None:
+        """Remove every node of this stream from the scene. Later updates do nothing."""
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+            try:
+                self._root.remove()  # and the tile nodes below it
+            except Exception:  # the server may be stopped already
+                pass
+            self._retiring.clear()
+            for tile in self._tiles:
+                tile.node, tile.sent = None, None
+
+    # --- internals --------------------------------------------------------------------------
+    def _layout(self, shape) -> None:
+        """Crop boxes and GLB geometry for a texture of this (H, W); every tile is sent again."""
+        self._shape = tuple(shape)
+        for tile in self._tiles:
+            tile.geometry = _TileGeometry(tile.positions, tile.uv, tile.faces, tile.morph_ids, tile.morph_delta,
+                                          self._shape, _MARGIN_TEXELS, self.roughness)
+            tile.sent = None
+
+    def _encode(self, crop: np.ndarray) -> tuple[bytes, str]:
+        buffer = io.BytesIO()
+        image = Image.fromarray(np.ascontiguousarray(crop), "RGB")
+        if self.image_format == "png":
+            image.save(buffer, format="PNG", compress_level=1)
+            return buffer.getvalue(), "image/png"
+        image.save(buffer, format="JPEG", quality=90, subsampling=0)
+        return buffer.getvalue(), "image/jpeg"
+
+    def _remove_retired(self, now: float) -> None:
+        """Remove replaced nodes whose delay has passed; their names go back to the pool."""
+        while self._retiring and self._retiring[0].remove_at <= now:
+            node = self._retiring.pop(0)
+            node.handle.remove()
+            self._free.append(node.name)
+
+    def _refill(self, now: float) -> None:
+        """Token bucket: max_tiles_per_s tokens a second; at most half a second's worth (and one tile) saved up."""
+        if self.max_tiles_per_s == float("inf"):
+            self._tokens = float("inf")
+        elif self._tokens_at is not None:
+            burst = max(1.0, 0.5 * self.max_tiles_per_s)
+            self._tokens = min(burst, self._tokens + (now - self._tokens_at) * self.max_tiles_per_s)
+        self._tokens_at = now
+
+    def _take_name(self) -> str | None:
+        if self._free:
+            return self._free.pop()
+        if len(self._names) >= self._max_nodes:
+            return None
+        self._names.append(f"{self.name}/n{len(self._names):04d}")
+        return self._names[-1]
+
+
+def camera_for(surface, fov_deg: float = 50.0, aspect: float = 16 / 9, fill: float = 0.9, up=(0.0, 0.0, 1.0)):
+    """(position, look_at) of a camera above the mesh (along `up`, units of the mesh: mm) so that its bounding box fills
+    about `fill` of a view with vertical field of view fov_deg and this width/height aspect. For z up the view shows
+    +x to the right and +y up (the camera sits a hair toward -y, off the orbit controls' singular pole)."""
+    vertices = np.asarray(surface.vertices_mm, np.float64)
+    up = np.asarray(up, np.float64) / np.linalg.norm(up)
+    low, high = vertices.min(axis=0), vertices.max(axis=0)
+    centre = 0.5 * (low + high)
+    extent = high - low
+    screen_right = np.cross([0.0, 1.0, 0.0], up) if abs(up[1]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    screen_right /= np.linalg.norm(screen_right)
+    screen_up = np.cross(up, screen_right)
+    width, height = abs(extent @ screen_right), abs(extent @ screen_up)
+    half = np.tan(np.radians(fov_deg) / 2)
+    distance = max(height / (2 * half * fill), width / (2 * half * aspect * fill))
+    top = centre + up * (0.5 * abs(extent @ up))
+    return top + up * distance - screen_up * (0.01 * distance), centre
+
+
+def set_initial_camera(server, surface, fov_deg: float = 50.0, **kwargs) -> None:
+    """Point every new browser's camera at the mesh from above (viser's initial camera; see camera_for). Also sets the
+    near and far planes for a scene in millimetres."""
+    position, look_at = camera_for(surface, fov_deg=fov_deg, **kwargs)
+    camera = server.initial_camera
+    camera.fov = np.radians(fov_deg)
+    camera.near = 1.0
+    camera.far = 10000.0
+    camera.position = tuple(float(v) for v in position)
+    camera.look_at = tuple(float(v) for v in look_at)

@@ -238,7 +238,8 @@ class TextureStream:
         if max_tiles_per_s is None:
             max_tiles_per_s = self.max_pool / self.hide_after_s if self.hide_after_s > 0 else float("inf")
         self.max_tiles_per_s = float(max_tiles_per_s)
-        self._tokens, self._tokens_at = 0.0, None
+        self._burst = max(1.0, 0.5 * self.max_tiles_per_s)  # tiles that may go at once after a quiet spell
+        self._tokens, self._tokens_at = self._burst, None
         self._max_nodes = len(self._tiles) + self.max_pool
         self._names: list[str] = []      # every node name this stream has used
         self._free: list[str] = []       # names not in the scene now
@@ -343,8 +344,7 @@ class TextureStream:
         if self.max_tiles_per_s == float("inf"):
             self._tokens = float("inf")
         elif self._tokens_at is not None:
-            burst = max(1.0, 0.5 * self.max_tiles_per_s)
-            self._tokens = min(burst, self._tokens + (now - self._tokens_at) * self.max_tiles_per_s)
+            self._tokens = min(self._burst, self._tokens + (now - self._tokens_at) * self.max_tiles_per_s)
         self._tokens_at = now
 
     def _take_name(self) -> str | None:

@@ -83,9 +83,9 @@ class Viewer:
         # viser has two canvases (WebGL and a 2D overlay that stays 0 x 0); wait for one that is drawn at a size
         self.page.wait_for_function("() => [...document.querySelectorAll('canvas')].some(c => c.width > 0 && c.height > 0)", timeout=60_000)
 
-    def screenshot(self) -> np.ndarray:
-        """(H, W, 3) uint8 of the viewport."""
-        return decode(self.page.screenshot(type="png"))
+    def screenshot(self, timeout_s: float = 60.0) -> np.ndarray:
+        """(H, W, 3) uint8 of the viewport (the page has to draw a frame for it: up to seconds in software WebGL)."""
+        return decode(self.page.screenshot(type="png", timeout=timeout_s * 1000))
 
     def wait_for(self, predicate, timeout_s: float = 60.0, interval_s: float = 0.5, save_to=None) -> np.ndarray:
         """Poll screenshots until predicate(image) is true; returns that image or raises TimeoutError (after saving the
@@ -93,7 +93,7 @@ class Viewer:
         deadline = time.monotonic() + timeout_s
         image = None
         while time.monotonic() < deadline:
-            image = self.screenshot()
+            image = self.screenshot(timeout_s=max(deadline - time.monotonic(), 1.0))
             if predicate(image):
                 return image
             self.page.wait_for_timeout(interval_s * 1000)
@@ -141,9 +141,9 @@ def tissue_mask(image: np.ndarray) -> np.ndarray:
     return (r > 90) & (r - g > 40) & (r - b > 30)
 
 
-def whiteness(image: np.ndarray) -> float:
-    """Mean of min(R, G, B): high for the white-grey of coagulated tissue, low for red liver."""
-    return float(np.asarray(image, np.float64).min(axis=-1).mean())
+def white_fraction(image: np.ndarray, level: int = 150) -> float:
+    """Fraction of whitish pixels (min(R, G, B) > level): coagulated tissue; lit red liver stays far below."""
+    return float((np.asarray(image).min(axis=-1) > level).mean())
 
 
 def region(image: np.ndarray, centre_xy, half: int) -> np.ndarray:
@@ -221,17 +221,3 @@ def hole_pixels(image: np.ndarray, covered: np.ndarray, background_rgb, toleranc
     """Background-coloured pixels where the mesh should be: a missing tile shows up as thousands of them."""
     is_background = np.abs(np.asarray(image, np.int32) - np.asarray(background_rgb, np.int32)).max(axis=-1) <= tolerance
     return int((is_background & covered).sum())
-
-
-def hole_counts(frames: list[np.ndarray], background_rgb, erode_px: int = 3, tolerance: int = 12) -> np.ndarray:
-    """Per frame, the background-coloured pixels inside the mesh's footprint (the union over all frames of the
-    pixels that are not background, shrunk by erode_px). A frame with a hole in the mesh has many."""
-    from scipy import ndimage
-
-    background = np.asarray(background_rgb, np.int32)
-    is_background = [np.abs(np.asarray(f, np.int32) - background).max(axis=-1) <= tolerance for f in frames]
-    footprint = np.zeros(is_background[0].shape, bool)
-    for mask in is_background:
-        footprint |= ~mask
-    footprint = ndimage.binary_erosion(footprint, iterations=erode_px)
-    return np.array([int((mask & footprint).sum()) for mask in is_background])

@@ -25,21 +25,10 @@ from dataclasses import dataclass
 import numpy as np
 from PIL import Image
 
+from sims.surface import welded_normal_sums
+
 _MARGIN_TEXELS = 2
 _LINEAR, _CLAMP = 9729, 33071  # glTF sampler constants
-
-
-def _welded_normal_sums(positions: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Per vertex, the area-weighted normal sum (V, 3) of the WHOLE mesh with vertices welded by position, so UV
-    seams do not split normals."""
-    positions = np.asarray(positions, np.float64)
-    _, weld = np.unique(positions.round(6), axis=0, return_inverse=True)
-    weld = weld.reshape(-1)
-    sums = np.zeros((weld.max() + 1, 3))
-    cross = _face_cross(positions, faces)
-    for corner in range(3):
-        np.add.at(sums, weld[faces[:, corner]], cross)
-    return sums[weld]
 
 
 def _face_cross(positions: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -217,7 +206,7 @@ class TextureStream:
         positions = np.asarray(surface.vertices_mm, np.float32)
         all_faces = np.asarray(surface.faces, np.int64)
         uv = np.asarray(surface.uv, np.float32)
-        target = _welded_normal_sums(positions, all_faces) if seamless_normals else None
+        target = welded_normal_sums(positions, all_faces) if seamless_normals else None
         centroid = uv[all_faces].mean(axis=1)
         col = np.clip((centroid[:, 0] * tiles).astype(np.int64), 0, tiles - 1)
         row = np.clip(((1.0 - centroid[:, 1]) * tiles).astype(np.int64), 0, tiles - 1)

@@ -1,4 +1,9 @@
-"""Scene files: YAML -> validated, defaults-filled dict. Every error names the file and the dotted key."""
+"""Scene files: YAML -> validated, defaults-filled dict. Every error names the file and the dotted key.
+
+`cautery.scheme` (optional, default explicit) picks the heat time stepping of the cautery model:
+`explicit` (automatic substeps below the stability limit) or `implicit` (one backward-Euler step per
+time step, conjugate gradient), e.g. `cautery: {scheme: implicit}` or `--set cautery.scheme=implicit`.
+"""
 from __future__ import annotations
 
 import copy
@@ -14,6 +19,7 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 MODELS = ("cautery", "bleeding")
 STAGE_FIELDS = ("coagulation", "char", "omega", "temperature_c")
 SHAPE_TYPES = ("ball", "capsule", "spatula", "mesh")
+CAUTERY_SCHEMES = ("explicit", "implicit")  # = sims.cautery.SCHEMES (not imported here: that imports Taichi)
 DEFAULT_STAGES = [
     {"name": "healthy", "texture": "textures/liver_healthy.png"},
     {"name": "coagulated", "texture": "textures/liver_coagulated.png", "field": "coagulation", "from": 0.2, "to": 0.95},
@@ -295,7 +301,7 @@ SCENE = Record(
         "models": ListOf(Text(choices=MODELS), default=["cautery"]),
         "gravity_mm_s2": Vector([0.0, 0.0, -9810.0]),
         "tissue": Record({"preset": Text("liver", choices=tuple(params.TISSUE_PRESETS)), **_numbers(params.TISSUE, default=None)}, check=_check_tissue),
-        "cautery": Record(_numbers(params.CAUTERY)),
+        "cautery": Record({**_numbers(params.CAUTERY), "scheme": Text("explicit", choices=CAUTERY_SCHEMES)}),
         "bleeding": Record(_numbers(params.BLEEDING)),
         "look": Record({"stages": ListOf(_STAGE, default=DEFAULT_STAGES, max_len=8)}, check=lambda look, key, ctx: _check_stages(look["stages"], _join(key, "stages"), ctx)),
         "instruments": ListOf(_INSTRUMENT, max_len=8),

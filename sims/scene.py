@@ -1,6 +1,8 @@
 """Scene: a validated scene config -> only the models it names; step(); outputs; state files."""
+import contextlib
 import io
 import os
+import time
 import zipfile
 from pathlib import Path
 
@@ -46,7 +48,10 @@ class Scene:
             raise ConfigError(self.file, "mesh", f"{config['mesh']}: {exc}") from None
         self.models = list(config["models"])
         self.time_s, self.steps = 0.0, 0
+        self._time_base = (0.0, 0, config["time_step_s"])  # time_s = t0 + (steps - n0) * dt while dt stays dt
         self._displayed_at = 0.0
+        self.profile = False      # True: sync the device around each model and add its wall seconds to model_seconds
+        self.model_seconds: dict[str, float] = {}
         from sims.compose import Composer
         from sims.instruments import Instrument
 
@@ -57,7 +62,7 @@ class Scene:
             from sims.instruments import InstrumentFields
 
             self.instrument_fields = InstrumentFields([tool for tool in self.instruments if tool.suction is None])
-            self.cautery = Cautery(self.surface, config["tissue"], config["cautery"], self.instrument_fields)
+            self.cautery = Cautery(self.surface, config["tissue"], config["cautery"], self.instrument_fields, scheme=config["cautery"]["scheme"])
         if "bleeding" in self.models:
             from scipy.spatial import cKDTree
 
@@ -86,15 +91,35 @@ class Scene:
         return self.config["time_step_s"]
 
     def step(self) -> None:
-        """Advance one time step of time_step_s."""
+        """Advance one time step of time_step_s (the browser may change it between steps; time goes on from
+        where it is, at the new step)."""
         dt = self.time_step_s
+        if dt != self._time_base[2]:
+            self._time_base = (self.time_s, self.steps, dt)
         if self.cautery is not None:
-            self.instrument_fields.set_time(self.time_s)
-            self.cautery.step(dt)
+            with self._timed("cautery"):
+                self.instrument_fields.set_time(self.time_s)
+                self.cautery.step(dt)
         if self.bleeding is not None:
-            self._bleed(dt)
+            with self._timed("bleeding"):
+                self._bleed(dt)
         self.steps += 1
-        self.time_s = self.steps * dt
+        t0, n0, _ = self._time_base
+        self.time_s = t0 + (self.steps - n0) * dt  # = steps * dt exactly while dt never changed
+
+    @contextlib.contextmanager
+    def _timed(self, model: str):
+        """Adds the wall seconds of the block to model_seconds[model] when profiling (device synced both ends)."""
+        if not self.profile:
+            yield
+            return
+        import taichi as ti
+
+        ti.sync()
+        start = time.perf_counter()
+        yield
+        ti.sync()
+        self.model_seconds[model] = self.model_seconds.get(model, 0.0) + time.perf_counter() - start
 
     def texel_near(self, position_mm) -> tuple[int, int]:
         """(row, col) of the surface texel nearest to a world position (mm)."""
@@ -141,6 +166,7 @@ class Scene:
 
     def reset(self) -> None:
         self.time_s, self.steps = 0.0, 0
+        self._time_base = (0.0, 0, self.time_step_s)
         self._displayed_at = 0.0
         if self.cautery is not None:
             self.cautery.reset()
@@ -150,12 +176,13 @@ class Scene:
     # --- outputs ------------------------------------------------------------------------------
     def composite(self) -> np.ndarray:
         """The display texture (H, W, 3) uint8, image orientation (row 0 = v 1)."""
-        if self.bleeding is not None:
-            fade_s = self.bleeding.params["display_fade_s"]
-            elapsed = self.time_s - self._displayed_at
-            self.bleeding.update_display(float(np.exp(-elapsed / fade_s)) if fade_s > 0 and elapsed >= 0 else 0.0)
-            self._displayed_at = self.time_s
-        return self.composer.compose(self.cautery, self.bleeding)
+        with self._timed("compose"):
+            if self.bleeding is not None:
+                fade_s = self.bleeding.params["display_fade_s"]
+                elapsed = self.time_s - self._displayed_at
+                self.bleeding.update_display(float(np.exp(-elapsed / fade_s)) if fade_s > 0 and elapsed >= 0 else 0.0)
+                self._displayed_at = self.time_s
+            return self.composer.compose(self.cautery, self.bleeding)
 
     def state_arrays(self) -> dict:
         """Arrays of DESIGN section 4 for the models this scene runs."""
@@ -176,7 +203,9 @@ class Scene:
     def metrics(self) -> dict:
         result = {"scene": self.name, "duration_s": self.time_s, "steps": self.steps, "models": self.models, "arch": self.arch}
         if self.cautery is not None:
-            result["cautery"] = {**self.cautery.metrics(), "heat_substeps_per_step": self.cautery.substeps(self.time_step_s)}
+            result["cautery"] = {**self.cautery.metrics(), "heat_scheme": self.cautery.scheme,
+                                 "heat_substeps_per_step": self.cautery.substeps(self.time_step_s),
+                                 "heat_solver_iterations_last_step": self.cautery.last_iterations}
         if self.bleeding is not None:
             result["bleeding"] = {
                 **self.bleeding.accounting(),

@@ -18,7 +18,16 @@ thread counts. Work per particle is capped (MAX_NEIGHBOURS in range, MAX_CANDIDA
 first), so dense clumps cost bounded time.
 
 Accounting: spawned = alive + suctioned + left_surface + expired, exactly, at every step.
+
+Walls (`Bleeding(..., walls=True)`, benchmarks such as the dam break; the product keeps the default
+walls=False, where a particle that leaves the valid texels leaves the surface): after the advance and
+after the relaxation a particle outside the valid texels is put back inside, on the border of its
+nearest valid texel (the surface's gutter-fill map; off the texture it is first clamped to the
+texture rectangle). The velocity then comes from the clamped displacement, so the part normal to the
+wall is removed and the tangential part kept (a free-slip, inelastic wall). It is a compile-time switch
+(ti.static): with walls off the kernels are exactly the ones without this feature.
 """
+import functools
 import math
 
 import numpy as np
@@ -32,6 +41,7 @@ MAX_CANDIDATES = 256        # particles one particle examines, at most (bounds t
 MAX_SUCTION_TOOLS = 8
 MAX_RELAX_FRACTION = 0.5    # largest relaxation displacement per substep, in interaction radii
 SPLAT_SCALE = 1024          # fixed-point units of one particle in the splat grid (integer atomics: deterministic)
+WALL_MARGIN = 1e-3          # walls keep particles this far (texels) inside the border of a valid texel
 KEYS = ("spawned", "suctioned", "left_surface", "expired", "dropped_pool_full")
 
 
@@ -65,16 +75,24 @@ def _hash01(a, b):
 
 @ti.data_oriented
 class Bleeding:
-    """Particle pool, neighbour grid and display splat on a TissueSurface."""
+    """Particle pool, neighbour grid and display splat on a TissueSurface.
 
-    def __init__(self, surface, params: dict, gravity_mm_s2, capacity: int):
+    walls: keep particles inside the valid texels (their velocity into the wall removed) instead of
+    removing those that leave; off in the product.
+    """
+
+    def __init__(self, surface, params: dict, gravity_mm_s2, capacity: int, walls: bool = False):
         self.surface, self.params = surface, params
+        self.walls = bool(walls)
         height, width = surface.mask.shape
         self.height, self.width, self.capacity = height, width, int(capacity)
         ex, ey = surface.tangent_u, -surface.tangent_v
         metric = surface.metric
         self.mask = ti.field(ti.i32, (height, width))
         self.mask.from_numpy(surface.mask.astype(np.int32))
+        if self.walls:  # flat index of the nearest valid texel (itself when valid)
+            self.wall_texel = ti.field(ti.i32, (height, width))
+            self.wall_texel.from_numpy(np.asarray(surface.fill_index, np.int32).reshape(height, width))
         self.texel_metric = ti.Vector.field(3, ti.f32, (height, width))   # gxx, gxy, gyy (mm^2 / texel^2)
         self.texel_metric.from_numpy(np.stack([metric[..., 0, 0], metric[..., 0, 1], metric[..., 1, 1]], axis=-1))
         self.texel_ex = ti.Vector.field(3, ti.f32, (height, width))       # dP/dx, mm per texel
@@ -291,6 +309,19 @@ class Bleeding:
         return ti.min(ti.max(row, 0), self.height - 1), ti.min(ti.max(col, 0), self.width - 1), inside
 
     @ti.func
+    def _keep_inside(self, x):
+        """x moved onto the nearest valid texel (walls): clamped to the texture, then to the box of the
+        nearest valid texel when its own texel is masked."""
+        lo, hi = WALL_MARGIN, 1.0 - WALL_MARGIN
+        x = ti.Vector([ti.min(ti.max(x[0], lo), self.width - lo), ti.min(ti.max(x[1], lo), self.height - lo)])
+        row, col, inside = self._texel(x)
+        if not inside:
+            target = self.wall_texel[row, col]
+            r, c = target // self.width, target % self.width
+            x = ti.Vector([ti.min(ti.max(x[0], c + lo), c + hi), ti.min(ti.max(x[1], r + lo), r + hi)])
+        return x
+
+    @ti.func
     def world_position(self, x):
         """World position (mm) of grid position x, linear within its texel."""
         row, col, inside = self._texel(x)
@@ -321,6 +352,8 @@ class Bleeding:
                 self.vel[i] = v
                 self.pos_prev[i] = self.pos[i]
                 self.pos[i] += v * dt
+                if ti.static(self.walls):
+                    self.pos[i] = self._keep_inside(self.pos[i])
                 self.age[i] += dt
                 _, _, inside = self._texel(self.pos[i])
                 if not inside:
@@ -461,6 +494,8 @@ class Bleeding:
             if self.fate[i] == ALIVE:
                 start = self.pos_prev[i]
                 moved = (self.pos_new[i] - start) * (1.0 - self.clot[i])
+                if ti.static(self.walls):  # the velocity below loses the part that went into the wall
+                    moved = self._keep_inside(start + moved) - start
                 v, speed = self._clamp_speed(inertia * moved / dt, self.metric[i], max_speed)
                 self.pos[i] = start + moved
                 self.vel[i] = v
@@ -577,14 +612,19 @@ class Bleeding:
         covered = self.thickness.to_numpy() >= 0.25 * self.params["film_thickness_mm"]
         return float(self.surface.texel_area_mm2[covered & self.surface.mask].sum(dtype=np.float64))
 
+    @functools.cached_property
+    def _median_texel_mm(self) -> tuple:
+        """Median texel length (mm) along columns and rows."""
+        mask = self.surface.mask
+        return tuple(float(np.median(np.linalg.norm(t[mask], axis=1))) for t in (self.surface.tangent_u, self.surface.tangent_v))
+
     def update_display(self, fade: float) -> None:
         """Splat particles, smooth over half the interaction radius, keep max(new, fade * old)."""
         self.splat.fill(0)
         if self.count:
             self._splat(self.count)
         reach_mm = 0.6 * self.params["interaction_radius_mm"]
-        mask = self.surface.mask
-        radius = [max(1, min(int(round(reach_mm / float(np.median(np.linalg.norm(t[mask], axis=1))))), 64)) for t in (self.surface.tangent_u, self.surface.tangent_v)]
+        radius = [max(1, min(int(round(reach_mm / texel_mm)), 64)) for texel_mm in self._median_texel_mm]
         self._blur_and_fade(radius[0], radius[1], self.particle_volume_ml * 1e3 / SPLAT_SCALE, fade)
 
     @ti.kernel

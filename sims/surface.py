@@ -192,8 +192,10 @@ def _rasterise(vertices, faces, uv, size):
     return owner_faces, int((strict > 1).sum())
 
 
-def _vertex_normals(vertices, faces):
-    """Area-weighted normals (V, 3), shared by vertices at the same position (smooth across UV seams)."""
+def welded_normal_sums(vertices, faces) -> np.ndarray:
+    """Per vertex, the sum (V, 3) of the cross products of its triangles' edges (area-weighted normals), summed over
+    all vertices at the same position, so UV seams do not split normals."""
+    vertices = np.asarray(vertices, np.float64)
     _, weld = np.unique(vertices.round(6), axis=0, return_inverse=True)
     weld = weld.reshape(-1)
     tri = vertices[faces]
@@ -201,7 +203,12 @@ def _vertex_normals(vertices, faces):
     acc = np.zeros((weld.max() + 1, 3))
     for corner in range(3):
         np.add.at(acc, weld[faces[:, corner]], face_n)
-    normals = acc[weld]
+    return acc[weld]
+
+
+def _vertex_normals(vertices, faces):
+    """Unit area-weighted normals (V, 3), smooth across UV seams."""
+    normals = welded_normal_sums(vertices, faces)
     return normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-30)
 
 

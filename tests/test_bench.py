@@ -36,12 +36,45 @@ def finite_numbers(node):
     return True
 
 
-def test_quick_bench_writes_finite_numbers(tmp_path):
+def test_arrhenius_under_relaxation_reduces_to_constant_temperature_and_is_monotone():
+    liver = params.TISSUE_PRESETS["liver"]
+    ln_a, ea = liver["arrhenius_ln_a"], liver["activation_energy_j_mol"]
+    constant = analytic.arrhenius_time_to_omega(1.0, 70.0, ln_a, ea)
+    assert analytic.arrhenius_time_under_relaxation(1.0, 70.0, 70.0, 2.0, ln_a, ea) == pytest.approx(constant, rel=1e-8)
+    # heating from 37 C toward 70 C takes longer than sitting at 70 C, and a faster approach takes less time
+    slow = analytic.arrhenius_time_under_relaxation(1.0, 37.0, 70.0, 1.0, ln_a, ea)
+    fast = analytic.arrhenius_time_under_relaxation(1.0, 37.0, 70.0, 10.0, ln_a, ea)
+    assert constant < fast < slow
+    # Omega(t) is additive over time and increasing
+    omega = analytic.arrhenius_omega_under_relaxation(np.array([0.5, 1.0, 2.0]), 37.0, 80.0, 1.0, ln_a, ea)
+    assert np.all(np.diff(omega) > 0)
+    assert analytic.arrhenius_omega_under_relaxation(1.0, 37.0, 80.0, 1.0, ln_a, ea) == pytest.approx(omega[1], rel=1e-9)
+
+
+def test_pareto_front_keeps_only_runs_nothing_beats():
+    from lab.bench.heat import pareto
+
+    rows = [{"ms_per_simulated_s": c, "max_error_rel": e, "id": i} for i, (c, e) in enumerate([(1, 0.5), (2, 0.6), (3, 0.1), (4, 0.1), (5, 0.01)])]
+    assert [row["id"] for row in pareto(rows)] == [0, 2, 4]
+
+
+def test_quick_bench_writes_finite_numbers_and_plots_for_every_section(tmp_path):
     from lab import bench
 
     bench.run(tmp_path, quick=True, arch="cpu")
     results = json.loads((tmp_path / "results.json").read_text())
-    for section in ("cautery", "bleeding_throughput", "bleeding_density"):
+    assert results["sections"] == list(bench.SECTIONS)
+    for section in bench.SECTIONS:
         assert results[section], section
+        for plot in results[section]["plots"]:
+            assert (tmp_path / plot).stat().st_size > 10_000, plot
+    assert results["heat"]["plane"] and results["damage"]["cases"] and results["bleeding"]["throughput"] and results["scenes"]["scenes"]
+    scenes = {row["scene"]: row for row in results["scenes"]["scenes"]}
+    assert set(scenes) == {"default.yaml", "bleeding.yaml", "hemostasis.yaml"}
+    assert scenes["bleeding.yaml"]["ms_per_simulated_s"]["cautery"] == 0.0  # a model the scene does not name costs nothing
+    assert scenes["default.yaml"]["ms_per_simulated_s"]["bleeding"] == 0.0
+    assert scenes["hemostasis.yaml"]["ms_per_simulated_s"]["cautery"] > 0.0 and scenes["hemostasis.yaml"]["ms_per_simulated_s"]["bleeding"] > 0.0
     assert finite_numbers(results)
-    assert "Speed and accuracy" in (tmp_path / "report.md").read_text()
+    report = (tmp_path / "report.md").read_text()
+    assert "Speed and accuracy" in report and results["device"]["arch"] in report
+    assert "![heat_pareto.png](heat_pareto.png)" in report

@@ -1,0 +1,56 @@
+"""Benchmarks: speed next to error. `python -m lab bench [--quick] [--only SECTION ...] --out DIR` writes
+DIR/report.md, DIR/results.json and PNG plots. One module per section, each with run(quick) -> dict (JSON),
+render(results) -> markdown lines and optionally plot(results, out_dir) -> PNG file names."""
+import importlib
+import json
+import time
+from pathlib import Path
+
+from tqdm import tqdm
+
+from lab.bench.common import device_description
+from sims import backend
+
+SECTIONS = ("heat", "damage", "bleeding", "dambreak", "scenes")  # dambreak includes the SPlisHSPlasH peer where it installs
+
+
+def run(out_dir, quick: bool = False, arch: str = "auto", sections=SECTIONS) -> dict:
+    """Run the named sections (all by default) and write the report; returns the results."""
+    unknown = [name for name in sections if name not in SECTIONS]
+    if unknown:
+        raise ValueError(f"unknown bench section(s) {', '.join(unknown)}; choose from {', '.join(SECTIONS)}")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    device = backend.init(arch)
+    results = {"device": device_description(device), "quick": quick, "sections": list(sections)}
+    started = time.perf_counter()
+    bar = tqdm(sections, desc="bench", unit="section")
+    for name in bar:
+        bar.set_postfix_str(name)
+        module = importlib.import_module(f"lab.bench.{name}")
+        section_start = time.perf_counter()
+        results[name] = module.run(quick)
+        results[name]["wall_s"] = time.perf_counter() - section_start
+        results[name]["plots"] = module.plot(results[name], out)
+    results["wall_s"] = time.perf_counter() - started
+    (out / "results.json").write_text(json.dumps(results, indent=2) + "\n")
+    (out / "report.md").write_text(render(results))
+    return results
+
+
+def render(results: dict) -> str:
+    device = results["device"]
+    lines = [
+        "# Speed and accuracy",
+        "",
+        f"Taken with Taichi {device['taichi']} on arch `{device['arch']}`, {device['processor']} ({device['machine']}), "
+        f"{device['threads']} thread(s) of {device['cpu_count']} CPU(s), Python {device['python']}. "
+        f"{'Quick run' if results['quick'] else 'Full run'}: {results['wall_s']:.0f} s.",
+        "",
+    ]
+    for name in results["sections"]:
+        module = importlib.import_module(f"lab.bench.{name}")
+        lines += module.render(results[name])
+        lines += [f"![{plot}]({plot})" for plot in results[name].get("plots", [])]
+        lines.append("")
+    return "\n".join(lines) + "\n"

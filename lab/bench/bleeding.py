@@ -1,0 +1,133 @@
+"""Bleeding: throughput against the NumPy + cKDTree step, and density error against substeps and time step."""
+import math
+
+import numpy as np
+
+from lab.bench.common import build_plane, pyplot, synced_seconds
+from sims.config import REPO_ROOT
+
+
+def _defaults() -> dict:
+    from sims import params
+
+    return {name: spec.default for name, spec in params.BLEEDING.items()}
+
+
+def throughput(count: int, steps: int, numpy_steps: int) -> dict:
+    """Particle-steps per second of sims.sph and of the NumPy + cKDTree step on the same particles: a disk at rest
+    spacing on a flat plane, no gravity, default parameters, dt 0.01 s."""
+    from lab.sph_reference import NumpyBleeding, disk_positions
+    from sims.sph import Bleeding
+
+    values = _defaults()
+    positions = disk_positions(count, values["particle_spacing_mm"])
+    side = 2.4 * float(np.abs(positions).max())
+    size = int(min(2048, max(256, 2 ** math.ceil(math.log2(side / 0.15)))))
+    bleeding = Bleeding(build_plane(side, size), values, (0.0, 0.0, 0.0), count)
+    grid = (positions / side + 0.5) * size
+    grid[:, 1] = size - grid[:, 1]  # rows grow toward -y
+    bleeding.place(grid)
+    bleeding.step(0.01)  # compile
+    taichi_rate = count * steps / synced_seconds(lambda: bleeding.step(0.01), steps)
+    row = {"particles": count, "texture_size": size, "taichi_particle_steps_per_s": taichi_rate, "taichi_steps_per_s": taichi_rate / count}
+    if numpy_steps:
+        reference = NumpyBleeding(positions, values)
+        reference.step(0.01)
+        numpy_rate = count * numpy_steps / synced_seconds(lambda: reference.step(0.01), numpy_steps)
+        row.update(numpy_particle_steps_per_s=numpy_rate, speedup=taichi_rate / numpy_rate)
+    return row
+
+
+def settle(substeps: int, dt_s: float, seconds: float = 3.0) -> dict:
+    """80 particles released in the hollow of the patch under gravity: density against rest density after 3 s."""
+    from sims.sph import Bleeding
+    from sims.surface import build_surface, load_mesh
+
+    surface = build_surface(load_mesh(REPO_ROOT / "static/meshes/patch.obj"), 256)
+    values = dict(_defaults(), substeps=substeps)
+    bleeding = Bleeding(surface, values, (0.0, 0.0, -9810.0), 200)
+    distance = np.linalg.norm(surface.position_mm[..., :2] - (-7.0, 10.0), axis=-1) + np.where(surface.mask, 0, np.inf)
+    bleeding.spawn(np.unravel_index(np.argmin(distance), distance.shape), 80, 1.0)
+    steps = int(round(seconds / dt_s))
+    bleeding.step(dt_s)  # compile
+    wall = synced_seconds(lambda: bleeding.step(dt_s), steps - 1)
+    rho = bleeding.density.to_numpy()[: bleeding.count, 0]
+    position = bleeding.particle_arrays()["particle_position_mm"]
+    reach = np.linalg.norm(position - position.mean(axis=0), axis=1)
+    bulk = reach < 0.6 * reach.max()  # away from the free edge, where particles miss neighbours
+    return {
+        "substeps": substeps,
+        "dt_s": dt_s,
+        "particles": int(bleeding.count),
+        "density_error_rel": float(rho.mean() / bleeding.rest_density - 1.0),
+        "bulk_density_error_rel": float(rho[bulk].mean() / bleeding.rest_density - 1.0),
+        "ms_per_simulated_s": 1000.0 * wall / ((steps - 1) * dt_s),
+    }
+
+
+def run(quick: bool) -> dict:
+    counts = (1_000, 10_000, 30_000) if quick else (1_000, 3_000, 10_000, 30_000, 100_000, 300_000)
+    rows = []
+    for count in counts:
+        numpy_steps = 0 if count > 100_000 else max(1, min(10, 30_000 // count))
+        rows.append(throughput(count, steps=max(3, min(40, 200_000 // count)) if not quick else max(3, min(10, 50_000 // count)), numpy_steps=numpy_steps))
+    substeps = (1, 2, 4) if quick else (1, 2, 4, 8)
+    time_steps = (0.01,) if quick else (0.005, 0.01, 0.02)
+    density = [settle(n, dt, 1.0 if quick else 3.0) for dt in time_steps for n in substeps]
+    return {"throughput": rows, "density": density, "capacity_note": "the largest N is the largest pool measured"}
+
+
+def render(results: dict) -> list[str]:
+    lines = [
+        "## Bleeding: throughput",
+        "",
+        "Particles at rest spacing (0.5 mm) in a disk on a flat plane, no gravity, default parameters (2 substeps per",
+        "0.01 s step). The NumPy + scipy cKDTree version of the same step (lab/sph_reference.py) runs in the same process.",
+        "",
+        "| particles | Taichi steps/s | Taichi particle-steps/s | NumPy+cKDTree particle-steps/s | speed-up |",
+        "|---|---|---|---|---|",
+    ]
+    for row in results["throughput"]:
+        numpy_rate = f"{row['numpy_particle_steps_per_s']:.3g}" if "numpy_particle_steps_per_s" in row else "not run"
+        speedup = f"{row['speedup']:.1f}x" if "speedup" in row else "-"
+        lines.append(f"| {row['particles']:,} | {row['taichi_steps_per_s']:.1f} | {row['taichi_particle_steps_per_s']:.3g} | {numpy_rate} | {speedup} |")
+    lines += [
+        "",
+        "## Bleeding: density error against substeps and time step",
+        "",
+        "80 particles released in the hollow of the patch (gravity 9.81 m/s²); mean density against the rest density at",
+        "the end, over all particles and over the bulk (inner 60 % of the radius, away from the free edge).",
+        "",
+        "| dt (s) | substeps | mean density error | bulk density error | ms per simulated s |",
+        "|---|---|---|---|---|",
+    ]
+    for row in results["density"]:
+        lines.append(f"| {row['dt_s']} | {row['substeps']} | {row['density_error_rel']:+.1%} | {row['bulk_density_error_rel']:+.1%} | {row['ms_per_simulated_s']:.0f} |")
+    return lines
+
+
+def plot(results: dict, out_dir) -> list[str]:
+    plt = pyplot()
+    fig, (left, right) = plt.subplots(1, 2, figsize=(10, 3.8))
+    rows = results["throughput"]
+    left.loglog([r["particles"] for r in rows], [r["taichi_particle_steps_per_s"] for r in rows], "o-", label="sims.sph (Taichi)")
+    numpy_rows = [r for r in rows if "numpy_particle_steps_per_s" in r]
+    left.loglog([r["particles"] for r in numpy_rows], [r["numpy_particle_steps_per_s"] for r in numpy_rows], "s--", label="NumPy + cKDTree")
+    left.set_xlabel("particles")
+    left.set_ylabel("particle-steps per second")
+    left.set_title("Bleeding throughput")
+    left.legend()
+    for dt in sorted({r["dt_s"] for r in results["density"]}):
+        runs = [r for r in results["density"] if r["dt_s"] == dt]
+        right.plot([r["ms_per_simulated_s"] for r in runs], [abs(r["bulk_density_error_rel"]) * 100 for r in runs], "o-", label=f"dt {dt:g} s")
+        for r in runs:
+            right.annotate(str(r["substeps"]), (r["ms_per_simulated_s"], abs(r["bulk_density_error_rel"]) * 100), fontsize=7, xytext=(3, 2), textcoords="offset points")
+    right.set_xscale("log")
+    right.set_xlabel("cost: wall ms per simulated second")
+    right.set_ylabel("|bulk density error|, %")
+    right.set_title("Density error against cost (label: substeps)")
+    right.legend()
+    fig.tight_layout()
+    fig.savefig(out_dir / "bleeding.png")
+    plt.close(fig)
+    return ["bleeding.png"]

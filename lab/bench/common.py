@@ -1,0 +1,81 @@
+"""Shared pieces of the benchmark sections: test surfaces, device description, plotting setup."""
+import platform
+import time
+
+import numpy as np
+
+BODY_C = 37.0
+
+
+def plane_mesh(width_mm: float, height_mm: float, u_scale: float = 1.0, vertical: bool = False, cells: int = 8):
+    """A flat width x height rectangle centred at the origin with UV = (x / width, y / height) in [0, 1].
+
+    vertical: the rectangle stands in the x-z plane (z up) instead of lying in x-y.
+    u_scale: only the first u_scale of the U range is used, so a texel is stretched 1/u_scale : 1 (anisotropic UVs).
+    """
+    import trimesh
+
+    n = cells + 1
+    xs, ys = np.meshgrid(np.linspace(-width_mm / 2, width_mm / 2, n), np.linspace(-height_mm / 2, height_mm / 2, n))
+    zeros = np.zeros(xs.size)
+    vertices = np.stack([xs.ravel(), zeros, ys.ravel()] if vertical else [xs.ravel(), ys.ravel(), zeros], axis=1)
+    uv = np.stack([(xs.ravel() / width_mm + 0.5) * u_scale, ys.ravel() / height_mm + 0.5], axis=1)
+    faces = [[j * n + i, j * n + i + 1, j * n + i + n + 1] for j in range(cells) for i in range(cells)]
+    faces += [[j * n + i, j * n + i + n + 1, j * n + i + n] for j in range(cells) for i in range(cells)]
+    return trimesh.Trimesh(vertices, np.array(faces), visual=trimesh.visual.TextureVisuals(uv=uv), process=False)
+
+
+def build_plane(side_mm: float, size: int):
+    """A flat square of side_mm centred at the origin, rasterised at size^2 texels (sims.surface.TissueSurface)."""
+    from sims.surface import build_surface
+
+    return build_surface(plane_mesh(side_mm, side_mm), size)
+
+
+def device_description(arch: str) -> dict:
+    """Where the numbers were taken: Taichi arch, CPU, threads, Python, Taichi version."""
+    import os
+
+    import taichi as ti
+
+    return {
+        "arch": arch,
+        "machine": platform.machine(),
+        "processor": platform.processor() or platform.machine(),
+        "cpu_count": os.cpu_count() or 1,
+        "threads": int(os.environ.get("TISSUE_LAB_THREADS", 0)) or (os.cpu_count() or 1),
+        "python": platform.python_version(),
+        "taichi": ".".join(str(v) for v in ti.__version__),
+    }
+
+
+def synced_seconds(fn, repeats: int = 1, chunks: int = 5) -> float:
+    """Wall seconds for `repeats` calls of fn: the calls are timed in up to `chunks` equal runs (Taichi device
+    synchronised at both ends of each) and the fastest run's time per call is scaled to `repeats`, so a burst of
+    other load on the machine does not count."""
+    import taichi as ti
+
+    chunks = max(1, min(chunks, repeats))
+    best = float("inf")
+    done = 0
+    for index in range(chunks):
+        size = (repeats * (index + 1)) // chunks - done
+        ti.sync()
+        start = time.perf_counter()
+        for _ in range(size):
+            fn()
+        ti.sync()
+        best = min(best, (time.perf_counter() - start) / size)
+        done += size
+    return best * repeats
+
+
+def pyplot():
+    """matplotlib.pyplot with the file-only Agg backend."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    plt.rcParams.update({"figure.dpi": 110, "axes.grid": True, "grid.alpha": 0.3, "font.size": 9})
+    return plt

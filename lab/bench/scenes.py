@@ -1,0 +1,107 @@
+"""Per-scene cost: wall ms per simulated second in each model (cautery, bleeding, compose, texture encoding), so a
+scene is seen to pay only for the models it names."""
+import socket
+import time
+
+from lab.bench.common import pyplot
+from sims.config import REPO_ROOT
+
+FRAMES_PER_SIMULATED_S = 10  # display updates: the browser lab sends about 10 per second
+MODELS = ("cautery", "bleeding", "compose", "encoding")
+
+
+def _free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+def scene_cost(path, seconds: float, server) -> dict:
+    """Run the first `seconds` of a scene with profiling; every 1/10 simulated s compose the texture and hand the
+    changed tiles to a TextureStream on a viser server with no client (encoding = PNG tiles in GLBs)."""
+    from lab.stream import TextureStream
+    from sims.scene import Scene
+
+    scene = Scene.from_file(path)
+    stream = TextureStream(server, scene.surface, name=f"/bench/{path.stem}", hide_after_s=0.0)
+    scene.step()  # compile the step kernels, then the display ones
+    stream.update(scene.composite())
+    scene.reset()
+    scene.profile = True
+    steps = max(1, int(round(seconds / scene.time_step_s)))
+    every = max(1, int(round(1.0 / (FRAMES_PER_SIMULATED_S * scene.time_step_s))))
+    sent_bytes, updates, encoding = 0, 0, 0.0
+    for step in range(1, steps + 1):
+        scene.step()
+        if step % every == 0:
+            rgb = scene.composite()
+            start = time.perf_counter()
+            sent_bytes += stream.update(rgb)["bytes"]
+            encoding += time.perf_counter() - start
+            updates += 1
+    stream.close()
+    simulated = steps * scene.time_step_s
+    cost = {model: 1000.0 * scene.model_seconds.get(model, 0.0) / simulated for model in MODELS[:3]}
+    cost["encoding"] = 1000.0 * encoding / simulated
+    metrics = scene.metrics()
+    return {
+        "scene": path.name,
+        "models": list(scene.models),
+        "texture_size": scene.config["texture_size"],
+        "time_step_s": scene.time_step_s,
+        "simulated_s": simulated,
+        "ms_per_simulated_s": cost,
+        "total_ms_per_simulated_s": sum(cost.values()),
+        "realtime_factor": 1000.0 / sum(cost.values()),
+        "bytes_per_update": sent_bytes / max(updates, 1),
+        "particles_at_end": int(metrics.get("bleeding", {}).get("alive", 0)),
+    }
+
+
+def run(quick: bool) -> dict:
+    import viser
+
+    server = viser.ViserServer(host="127.0.0.1", port=_free_port(), verbose=False)
+    try:
+        rows = [scene_cost(path, 1.0 if quick else 5.0, server) for path in sorted((REPO_ROOT / "scenes").glob("*.yaml"))]
+    finally:
+        server.stop()
+    return {"frames_per_simulated_s": FRAMES_PER_SIMULATED_S, "scenes": rows}
+
+
+def render(results: dict) -> list[str]:
+    lines = [
+        "## Cost per scene and model",
+        "",
+        f"Each scene in scenes/ run from t = 0 for {results['scenes'][0]['simulated_s']:g} simulated s at its own texture size and time",
+        f"step; wall milliseconds per simulated second in each model (device synchronised around each), with {results['frames_per_simulated_s']}",
+        "display updates per simulated second composed and encoded as the browser lab does (changed 64² tiles as PNG in",
+        "GLB). A model the scene does not name costs nothing. Real-time factor: simulated seconds per wall second.",
+        "",
+        "| scene | models | texels | " + " | ".join(MODELS) + " | total | real-time factor | kB per update | particles at end |",
+        "|---|---|---|" + "---|" * len(MODELS) + "---|---|---|---|",
+    ]
+    for row in results["scenes"]:
+        costs = " | ".join(f"{row['ms_per_simulated_s'][m]:.0f}" if m in row["models"] or m in ("compose", "encoding") else "-" for m in MODELS)
+        lines.append(f"| {row['scene']} | {', '.join(row['models'])} | {row['texture_size']}² | {costs} | {row['total_ms_per_simulated_s']:.0f} | "
+                     f"{row['realtime_factor']:.2f} | {row['bytes_per_update'] / 1000:.1f} | {row['particles_at_end']:,} |")
+    return lines
+
+
+def plot(results: dict, out_dir) -> list[str]:
+    plt = pyplot()
+    fig, ax = plt.subplots(figsize=(6.4, 3.2))
+    names = [row["scene"] for row in results["scenes"]]
+    left = [0.0] * len(names)
+    for model in MODELS:
+        values = [row["ms_per_simulated_s"][model] for row in results["scenes"]]
+        ax.barh(names, values, left=left, label=model)
+        left = [a + b for a, b in zip(left, values)]
+    ax.axvline(1000.0, color="k", ls="--", lw=1, label="real time")
+    ax.set_xlabel("wall ms per simulated second")
+    ax.set_title("Cost per scene and model")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(out_dir / "scene_cost.png")
+    plt.close(fig)
+    return ["scene_cost.png"]

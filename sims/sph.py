@@ -143,6 +143,7 @@ class Bleeding:
         self.suction_candidates = ti.field(ti.i32, ())
         self.splat = ti.field(ti.i32, (height, width))
         self.thickness = ti.field(ti.f32, (height, width))     # displayed film thickness, mm
+        self.fresh_thickness = ti.field(ti.f32, (height, width))  # this step's film only (blood area), mm
         self.blur_tmp = ti.field(ti.f32, (height, width))
         self.texel_area = ti.field(ti.f32, (height, width))
         self.texel_area.from_numpy(np.where(surface.mask, surface.texel_area_mm2, 1.0).astype(np.float32))
@@ -608,8 +609,8 @@ class Bleeding:
 
     def blood_area_mm2(self) -> float:
         """Surface area (mm^2) of texels whose displayed film is at least a quarter of the rest thickness."""
-        self.update_display(fade=0.0)  # this step's blood only
-        covered = self.thickness.to_numpy() >= 0.25 * self.params["film_thickness_mm"]
+        self._film(self.fresh_thickness, fade=0.0)  # this step's blood only; the display keeps its fading trails
+        covered = self.fresh_thickness.to_numpy() >= 0.25 * self.params["film_thickness_mm"]
         return float(self.surface.texel_area_mm2[covered & self.surface.mask].sum(dtype=np.float64))
 
     @functools.cached_property
@@ -619,13 +620,16 @@ class Bleeding:
         return tuple(float(np.median(np.linalg.norm(t[mask], axis=1))) for t in (self.surface.tangent_u, self.surface.tangent_v))
 
     def update_display(self, fade: float) -> None:
-        """Splat particles, smooth over half the interaction radius, keep max(new, fade * old)."""
+        """Splat particles, smooth over half the interaction radius, keep max(new, fade * old) in `thickness`."""
+        self._film(self.thickness, fade)
+
+    def _film(self, out, fade: float) -> None:
         self.splat.fill(0)
         if self.count:
             self._splat(self.count)
         reach_mm = 0.6 * self.params["interaction_radius_mm"]
         radius = [max(1, min(int(round(reach_mm / texel_mm)), 64)) for texel_mm in self._median_texel_mm]
-        self._blur_and_fade(radius[0], radius[1], self.particle_volume_ml * 1e3 / SPLAT_SCALE, fade)
+        self._blur_and_fade(radius[0], radius[1], self.particle_volume_ml * 1e3 / SPLAT_SCALE, fade, out)
 
     @ti.kernel
     def _splat(self, n: ti.i32):
@@ -641,7 +645,7 @@ class Bleeding:
                     ti.atomic_add(self.splat[r, c], ti.cast(w * SPLAT_SCALE + 0.5, ti.i32))
 
     @ti.kernel
-    def _blur_and_fade(self, radius_x: ti.i32, radius_y: ti.i32, unit_mm3: ti.f32, fade: ti.f32):
+    def _blur_and_fade(self, radius_x: ti.i32, radius_y: ti.i32, unit_mm3: ti.f32, fade: ti.f32, out: ti.template()):
         """Separable tent filter of the splatted volume (radii in texels) -> thickness (mm) = volume / area."""
         for r, c in self.blur_tmp:
             total = 0
@@ -649,13 +653,13 @@ class Bleeding:
                 cc = ti.min(ti.max(c + k, 0), self.width - 1)
                 total += self.splat[r, cc] * (radius_x + 1 - ti.abs(k))
             self.blur_tmp[r, c] = total * unit_mm3 / ((radius_x + 1) * (radius_x + 1))
-        for r, c in self.thickness:
+        for r, c in out:
             total = 0.0
             for k in range(-radius_y, radius_y + 1):
                 rr = ti.min(ti.max(r + k, 0), self.height - 1)
                 total += self.blur_tmp[rr, c] * (radius_y + 1 - ti.abs(k))
             fresh = total / ((radius_y + 1) * (radius_y + 1) * self.texel_area[r, c])
-            self.thickness[r, c] = ti.max(fresh, fade * self.thickness[r, c])
+            out[r, c] = ti.max(fresh, fade * out[r, c])
 
 
 class BleedPoint:

@@ -7,8 +7,11 @@ sleeping for fixed times.
 from __future__ import annotations
 
 import io
+import queue
 import socket
+import threading
 import time
+from concurrent.futures import Future
 from pathlib import Path
 from urllib.parse import urlparse
 
@@ -41,6 +44,48 @@ def free_port() -> int:
 def launch(playwright):
     """A headless chromium from the system package (never a Playwright download)."""
     return playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS, headless=True)
+
+
+class BrowserThread:
+    """A headless chromium driven by Playwright's sync API on a thread of its own, so that the main thread can run
+    the lab's simulation loop meanwhile (Taichi compiles a rebuilt scene only on the thread that started it).
+    `submit(fn)` runs fn(browser) on that thread and returns a Future; every Playwright object must be used there."""
+
+    def __init__(self, start_timeout_s: float = 120.0):
+        self._jobs: queue.Queue = queue.Queue()
+        self._ready: Future = Future()
+        self._thread = threading.Thread(target=self._main, name="browser", daemon=True)
+        self._thread.start()
+        self._ready.result(timeout=start_timeout_s)
+
+    def _main(self) -> None:
+        from playwright.sync_api import sync_playwright
+
+        try:
+            with sync_playwright() as playwright:
+                instance = launch(playwright)
+                self._ready.set_result(True)
+                while (job := self._jobs.get()) is not None:
+                    fn, future = job
+                    if not future.set_running_or_notify_cancel():
+                        continue
+                    try:
+                        future.set_result(fn(instance))
+                    except BaseException as exc:  # handed to whoever waits on the future
+                        future.set_exception(exc)
+                instance.close()
+        except BaseException as exc:
+            if not self._ready.done():
+                self._ready.set_exception(exc)
+
+    def submit(self, fn) -> Future:
+        future: Future = Future()
+        self._jobs.put((fn, future))
+        return future
+
+    def close(self, timeout_s: float = 30.0) -> None:
+        self._jobs.put(None)
+        self._thread.join(timeout=timeout_s)
 
 
 def is_local(url: str) -> bool:

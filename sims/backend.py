@@ -56,3 +56,14 @@ def init(arch: str = "auto") -> str:
 def started_arch() -> str | None:
     """The arch Taichi runs on, or None before init()."""
     return _started_arch
+
+
+def shutdown() -> None:
+    """Release every Taichi field and kernel of this process; the next init() starts a fresh runtime. Taichi allows
+    512 SNode trees per runtime and each field made after the first kernel launch is one."""
+    global _started_arch
+    if _started_arch is not None:
+        import taichi as ti
+
+        ti.reset()
+        _started_arch = None

@@ -3,7 +3,9 @@ import pytest
 from sims import backend
 
 
-@pytest.fixture(scope="session", autouse=True)
+@pytest.fixture(scope="module", autouse=True)
 def taichi_cpu():
-    """One Taichi init per test process, on the CPU (CI has no GPU)."""
-    return backend.init("cpu")
+    """A fresh Taichi runtime on the CPU (CI has no GPU) for every test module: Taichi allows 512 SNode trees
+    per runtime (each field made after the first kernel launch is one) and the process dies past that."""
+    yield backend.init("cpu")
+    backend.shutdown()

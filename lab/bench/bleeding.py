@@ -3,7 +3,7 @@ import math
 
 import numpy as np
 
-from lab.bench.common import build_plane, pyplot, synced_seconds
+from lab.bench.common import save, build_plane, pyplot, synced_seconds
 from sims.config import REPO_ROOT
 
 
@@ -127,7 +127,4 @@ def plot(results: dict, out_dir) -> list[str]:
     right.set_ylabel("|bulk density error|, %")
     right.set_title("Density error against cost (label: substeps)")
     right.legend()
-    fig.tight_layout()
-    fig.savefig(out_dir / "bleeding.png")
-    plt.close(fig)
-    return ["bleeding.png"]
+    return [save(fig, out_dir, "bleeding.png")]

@@ -1,5 +1,6 @@
 """Shared pieces of the benchmark sections: test surfaces, device description, plotting setup."""
 import platform
+from pathlib import Path
 import time
 
 import numpy as np
@@ -79,3 +80,13 @@ def pyplot():
 
     plt.rcParams.update({"figure.dpi": 110, "axes.grid": True, "grid.alpha": 0.3, "font.size": 9})
     return plt
+
+
+def save(fig, out_dir, name: str) -> str:
+    """Lay out, write out_dir/name as PNG, free the figure; returns name."""
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout()
+    fig.savefig(Path(out_dir) / name)
+    plt.close(fig)
+    return name

@@ -1,7 +1,7 @@
 """Damage: when does Omega reach 1, against the analytic Arrhenius integral, for time steps 1 ms to 50 ms."""
 import numpy as np
 
-from lab.bench.common import BODY_C, build_plane, pyplot
+from lab.bench.common import save, BODY_C, build_plane, pyplot
 from sims import analytic
 
 TIME_STEPS_S = (0.001, 0.002, 0.005, 0.01, 0.02, 0.05)
@@ -100,7 +100,4 @@ def plot(results: dict, out_dir) -> list[str]:
     ax.set_ylabel("|time to Omega = 1| error, %")
     ax.set_title("Damage: Arrhenius timing error against time step")
     ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(out_dir / "damage_timing.png")
-    plt.close(fig)
-    return ["damage_timing.png"]
+    return [save(fig, out_dir, "damage_timing.png")]

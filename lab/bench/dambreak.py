@@ -381,7 +381,7 @@ def plot(results: dict, out_dir) -> list[str]:
     release's wall time) and, when stored, dambreak_snapshots.png."""
     from pathlib import Path
 
-    from lab.bench.common import pyplot
+    from lab.bench.common import pyplot, save
 
     plt = pyplot()
     out = Path(out_dir)
@@ -403,10 +403,7 @@ def plot(results: dict, out_dir) -> list[str]:
     ax.plot(data[:, 0], data[:, 1], "ko", ms=5, label="Martin & Moyce 1952")
     ax.set(xlabel="T = t sqrt(2g/a)", ylabel="front Z = z / a", xlim=(0, T_END), ylim=(0.8, TANK_LENGTH_A))
     ax.legend(fontsize=7, loc="upper left")
-    fig.tight_layout()
-    fig.savefig(out / "dambreak_front.png")
-    plt.close(fig)
-    written.append("dambreak_front.png")
+    written.append(save(fig, out, "dambreak_front.png"))
 
     fig, ax = plt.subplots(figsize=(6.4, 4.2))
     for speed in sorted({r["sound_speed_mm_s"] for r in results["runs"]}):
@@ -429,10 +426,7 @@ def plot(results: dict, out_dir) -> list[str]:
     ax.xaxis.set_minor_formatter(NullFormatter())
     ax.margins(x=0.2, y=0.1)
     ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(out / "dambreak_error_cost.png")
-    plt.close(fig)
-    written.append("dambreak_error_cost.png")
+    written.append(save(fig, out, "dambreak_error_cost.png"))
 
     shots = next((r for r in results["runs"] if r.get("snapshots")), None)
     if shots:
@@ -444,8 +438,5 @@ def plot(results: dict, out_dir) -> list[str]:
             ax.set(xlim=(0, TANK_LENGTH_A), ylim=(0, TANK_HEIGHT_A), aspect="equal", ylabel="z / a")
             ax.set_title(f"T = {snap['T']:.2f} (dashed: Martin & Moyce front)", fontsize=8)
         np.atleast_1d(axes)[-1].set_xlabel(f"x / a (ours, {shots['spacing_mm']:g} mm spacing)")
-        fig.tight_layout()
-        fig.savefig(out / "dambreak_snapshots.png")
-        plt.close(fig)
-        written.append("dambreak_snapshots.png")
+        written.append(save(fig, out, "dambreak_snapshots.png"))
     return written

@@ -2,7 +2,7 @@
 time step and time-stepping scheme; a Pareto plot."""
 import numpy as np
 
-from lab.bench.common import BODY_C, plane_mesh, pyplot, synced_seconds
+from lab.bench.common import save, BODY_C, plane_mesh, pyplot, synced_seconds
 from sims import analytic
 
 SIDE_MM = 40.0
@@ -121,7 +121,4 @@ def plot(results: dict, out_dir) -> list[str]:
     ax.set_ylabel("max error, % of the 50 C peak")
     ax.set_title("Heat: Gaussian on a plane, error against cost (label: texels, dt)")
     ax.legend()
-    fig.tight_layout()
-    fig.savefig(out_dir / "heat_pareto.png")
-    plt.close(fig)
-    return ["heat_pareto.png"]
+    return [save(fig, out_dir, "heat_pareto.png")]

@@ -3,7 +3,7 @@ scene is seen to pay only for the models it names."""
 import socket
 import time
 
-from lab.bench.common import pyplot
+from lab.bench.common import save, pyplot
 from sims.config import REPO_ROOT
 
 FRAMES_PER_SIMULATED_S = 10  # display updates: the browser lab sends about 10 per second
@@ -101,7 +101,4 @@ def plot(results: dict, out_dir) -> list[str]:
     ax.set_xlabel("wall ms per simulated second")
     ax.set_title("Cost per scene and model")
     ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(out_dir / "scene_cost.png")
-    plt.close(fig)
-    return ["scene_cost.png"]
+    return [save(fig, out_dir, "scene_cost.png")]

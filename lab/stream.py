@@ -5,7 +5,9 @@ browser while the new GLB parses (DESIGN section 5). So the mesh is cut into K x
 triangle goes to the tile of its UV centroid); every tile is its own GLB node textured with the crop
 of the texture over its UV box plus a margin. An update re-sends only the tiles whose crop changed,
 each as a NEW node added visible over the old one (the newest identical copy draws last and wins);
-the old node is removed only `hide_after_s` later, when every browser has long shown the new one.
+the old node is removed at least `hide_after_s` later and only once every browser has applied and
+drawn the new one (lab.client_sync: a browser that draws a frame every few seconds would otherwise
+get the add and the remove in one batch and show a hole while the new node parses).
 Node names come from a capped pool and are re-used (which keeps viser's replay buffer bounded), and
 replacement tiles are sent at most `max_tiles_per_s`: a tile that changes faster is sent later with
 its then newest crop, so stale textures are dropped instead of queued.
@@ -25,6 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 from PIL import Image
 
+from lab.client_sync import ClientSync
 from sims.surface import welded_normal_sums
 
 _MARGIN_TEXELS = 2
@@ -158,7 +161,9 @@ class _TileGeometry:
 class _Node:
     name: str
     handle: object = None
-    remove_at: float = 0.0
+    replaced_at: float = 0.0  # when its successor was added, time.monotonic() s
+    successor_mark: float = 0.0  # ClientSync position after its successor's message
+    remove_at: float = 0.0    # not removed before this
 
 
 @dataclass
@@ -179,11 +184,13 @@ class TextureStream:
 
     def __init__(self, server, surface, name: str = "/tissue", tiles: int = 8, hide_after_s: float = 3.0,
                  max_pool: int | None = None, max_tiles_per_s: float | None = None, image_format: str = "png",
-                 seamless_normals: bool = True, roughness: float = 0.7, receive_shadow: bool = True):
+                 seamless_normals: bool = True, roughness: float = 0.7, receive_shadow: bool = True,
+                 wait_for_clients: bool = True, max_hide_s: float = 15.0):
         """server: viser.ViserServer. surface: anything with vertices_mm (V, 3), faces (F, 3) and uv (V, 2) in [0, 1]
         (OBJ convention, v up), e.g. sims.surface.TissueSurface. name: the scene node holding the tiles.
-        tiles: K, for K x K UV tiles. hide_after_s: how long a replaced tile node stays under its successor before it
-        is removed (longer than the slowest browser's lag; 3 s was enough in software WebGL, 1 s was not).
+        tiles: K, for K x K UV tiles. hide_after_s: how long a replaced tile node stays under its successor at least
+        before it is removed, s. wait_for_clients: also wait until every browser has applied and drawn the successor
+        (lab.client_sync), but at most max_hide_s: one frozen browser must not stall the others.
         max_pool: nodes allowed beyond one per tile, i.e. replaced tiles not yet removed (default K^2).
         max_tiles_per_s: replacement tiles sent per second at most, spread evenly (default max_pool / hide_after_s,
         which keeps the pool from running dry). image_format: "png" (exact) or "jpeg" (quality 90, no chroma
@@ -201,6 +208,8 @@ class TextureStream:
         self.image_format = image_format
         self.roughness = float(roughness)
         self.receive_shadow = bool(receive_shadow)
+        self.max_hide_s = float(max_hide_s)
+        self.sync = ClientSync(server) if wait_for_clients else None
         self._lock = threading.Lock()
         self._closed = False
         positions = np.asarray(surface.vertices_mm, np.float32)
@@ -234,7 +243,9 @@ class TextureStream:
         self._free: list[str] = []       # names not in the scene now
         self._retiring: list[_Node] = []  # replaced nodes, oldest first
         self._shape = None
-        self.stats = {"updates": 0, "tiles_sent": 0, "bytes": 0, "tiles_deferred": 0, "python_s": 0.0}
+        self.stats = {"updates": 0, "tiles_sent": 0, "bytes": 0, "tiles_deferred": 0, "python_s": 0.0,
+                      "removed": 0, "removed_unconfirmed": 0}  # replaced nodes removed; of those, after max_hide_s
+        # without every browser's confirmation
         self._root = server.scene.add_frame(self.name, show_axes=False)
 
     # --- public -----------------------------------------------------------------------------
@@ -242,6 +253,11 @@ class TextureStream:
     def node_count(self) -> int:
         """Tile nodes in the scene now (one per tile plus the replaced ones not yet removed)."""
         return sum(tile.node is not None for tile in self._tiles) + len(self._retiring)
+
+    @property
+    def pending_removals(self) -> int:
+        """Replaced tile nodes still in the scene, waiting for their delay and the browsers' confirmation."""
+        return len(self._retiring)
 
     def update(self, rgb: np.ndarray) -> dict:
         """Send the tiles whose texture crop changed since the last update. rgb: (H, W, 3) uint8, image orientation.
@@ -277,7 +293,8 @@ class TextureStream:
                 handle = self.server.scene.add_glb(name, glb, visible=True, cast_shadow=False, receive_shadow=self.receive_shadow)
                 if replacing:
                     self._tokens -= 1.0
-                    tile.node.remove_at = now + self.hide_after_s
+                    tile.node.replaced_at, tile.node.remove_at = now, now + self.hide_after_s
+                    tile.node.successor_mark = self.sync.mark() if self.sync is not None else 0.0
                     self._retiring.append(tile.node)
                 tile.node, tile.sent, tile.sent_at = _Node(name, handle), crop, now
                 sent += 1
@@ -295,6 +312,8 @@ class TextureStream:
             if self._closed:
                 return
             self._closed = True
+            if self.sync is not None:
+                self.sync.close()
             try:
                 self._root.remove()  # and the tile nodes below it
             except Exception:  # the server may be stopped already
@@ -322,10 +341,18 @@ class TextureStream:
         return buffer.getvalue(), "image/jpeg"
 
     def _remove_retired(self, now: float) -> None:
-        """Remove replaced nodes whose delay has passed; their names go back to the pool."""
+        """Remove replaced nodes whose delay has passed and whose successor every browser shows; their names go back
+        to the pool. Oldest first: both conditions hold for a prefix of the list."""
+        confirmed = self.sync.confirmed() if self.sync is not None and self._retiring else float("inf")
         while self._retiring and self._retiring[0].remove_at <= now:
-            node = self._retiring.pop(0)
+            node = self._retiring[0]
+            if confirmed < node.successor_mark:
+                if now < node.replaced_at + self.max_hide_s:
+                    break
+                self.stats["removed_unconfirmed"] += 1
+            self._retiring.pop(0)
             node.handle.remove()
+            self.stats["removed"] += 1
             self._free.append(node.name)
 
     def _refill(self, now: float) -> None:

@@ -276,6 +276,38 @@ def test_energized_instrument_whitens_the_tissue_under_it(lab, page, tmp_path):
 
 
 @needs_chromium
+def test_a_browser_that_stops_drawing_keeps_its_tiles_until_it_has_drawn_their_successors(lab, chromium, tmp_path):
+    """A page frozen in the DevTools debugger (no JavaScript, no frames) answers no sync requests: replaced tile nodes
+    are not removed while it is frozen, and once it runs again it shows no hole (with a fixed removal delay it would
+    get each new tile and the removal of the old one in one batch)."""
+    lab.drive("circle", *STREAM_CENTRES["first"])
+    frozen = _open(chromium, lab)
+    try:
+        cdp = frozen.context.new_cdp_session(frozen.page)
+        cdp.send("Debugger.enable")
+        cdp.send("Debugger.pause")
+        paused_at = lab.stream.sync.mark()
+        time.sleep(lab.stream.hide_after_s + 1.0)  # nodes the page had confirmed before the pause go meanwhile
+        removed_before, pending_before = lab.stream.stats["removed"], lab.stream.pending_removals
+        time.sleep(5.0)
+        removed_while_frozen = lab.stream.stats["removed"] - removed_before
+        assert lab.stream.sync.confirmed() < paused_at
+        assert pending_before > 0, "nothing was replaced while the page was frozen"
+        assert removed_while_frozen == 0, f"{removed_while_frozen} replaced nodes were removed while a page could not draw"
+        cdp.send("Debugger.resume")
+        frames = frozen.record(min_seconds=8, min_frames=6, max_seconds=30)
+        holes = np.array([_holes(lab, image) for image in frames])
+        for index in np.flatnonzero(holes > 20):
+            browser.save(frames[index], tmp_path / f"hole_{index:02d}.png")
+        assert (holes <= 20).all(), f"holes after the page ran again: {holes.tolist()}; see {tmp_path}"
+        assert lab.stream.stats["removed"] > removed_before, "removals never resumed"
+        assert lab.stream.stats["removed_unconfirmed"] == 0
+    finally:
+        frozen.close()
+    _check_thread(lab)
+
+
+@needs_chromium
 def test_second_client_keeps_streaming_after_the_first_leaves(lab, chromium, page, tmp_path):
     lab.drive("circle", *STREAM_CENTRES["second"])
     second = _open(chromium, lab)

@@ -5,6 +5,7 @@ One LabApp for the module on the hemostasis scene (cautery and bleeding) at 128Â
 on this (main) thread, only while a test waits in `in_browser`: Taichi compiles a rebuilt scene only on the thread
 that started it. The browser runs on a thread of its own (tests.browser.BrowserThread).
 """
+import json
 import math
 import time
 
@@ -244,3 +245,34 @@ def test_scene_switch_keeps_the_quality_and_drops_the_scene_changes(lab):
     assert lab.scene.config["time_step_s"] == 0.01 and not lab.added_points
     assert [point.name for point in lab.scene.bleed_points] == ["vessel"]
     assert math.isfinite(lab.scene.time_s)
+
+
+def test_rebuilds_never_run_the_taichi_runtime_out_of_field_trees(lab):
+    """Taichi frees no field of a dropped scene and allows 512 field trees per runtime (a hemostasis build makes 14):
+    every rebuild starts a fresh runtime, so the count stays where one build puts it however long a session lasts."""
+    import taichi as ti
+
+    trees = []
+    for size in (64, 80, 64, 80, 64, 80):
+        lab.overrides["texture_size"] = size
+        lab._schedule_rebuild()
+        builds = lab.builds
+        assert lab.run(until=lambda: lab.builds > builds and lab.scene.steps >= 3, timeout_s=60)
+        trees.append(ti.lang.impl.get_runtime().prog.get_snode_tree_size())
+        assert lab.scene.surface.mask.shape == (size, size)
+    assert trees[-1] <= trees[0], f"field trees grew over rebuilds: {trees}"
+    rgb = lab.scene.composite()
+    assert rgb.shape == (80, 80, 3) and rgb.std() > 0
+    assert lab.scene.time_s > 0 and json.dumps(lab.scene.metrics(), allow_nan=False)  # finite numbers throughout
+
+
+def test_a_scene_whose_mesh_fails_to_load_brings_the_previous_scene_back(lab, tmp_path):
+    (tmp_path / "broken.obj").write_text("v 0 0 0\nthis is not a mesh\n")
+    scene_file = tmp_path / "broken.yaml"
+    scene_file.write_text(yaml.safe_dump({"name": "broken", "mesh": str(tmp_path / "broken.obj"), "models": ["cautery"]}))
+    name, builds = lab.scene.name, lab.builds
+    lab._switch_scene(scene_file)
+    assert lab.scene.name == name and lab.builds == builds + 1
+    assert "broken.obj" in lab.notice and "not switched" in lab.notice
+    steps = lab.scene.steps
+    assert lab.run(until=lambda: lab.scene.steps > steps + 3, timeout_s=30)

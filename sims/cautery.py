@@ -205,7 +205,8 @@ class Cautery:
         self.last_iterations = count
         for _ in range(count):
             src, dst = self.temperature[self.current], self.temperature[1 - self.current]
-            self._substep(src, dst, sub, self.diffusivity_mm2_s, t["arrhenius_ln_a"], ea_r, t["char_temperature_c"], t["char_rate_1_s_c"])
+            self._substep(src, dst, sub, self.diffusivity_mm2_s, t["arrhenius_ln_a"], ea_r, t["damage_threshold_c"],
+                          t["char_temperature_c"], t["char_rate_1_s_c"])
             self.current = 1 - self.current
 
     def _implicit_step(self, dt_s: float, ea_r: float) -> None:
@@ -229,7 +230,7 @@ class Cautery:
             self.delta.fill(0.0)
             self.last_residual = 0.0
         self.last_iterations = iterations
-        self._cg_finish(temperature, dt_s, t["arrhenius_ln_a"], ea_r, t["char_temperature_c"], t["char_rate_1_s_c"])
+        self._cg_finish(temperature, dt_s, t["arrhenius_ln_a"], ea_r, t["damage_threshold_c"], t["char_temperature_c"], t["char_rate_1_s_c"])
 
     @ti.kernel
     def _contact(self, perfusion: ti.f32, body: ti.f32, contact: ti.f32, reach: ti.f32):
@@ -252,7 +253,8 @@ class Cautery:
             self.relax_target[r, c] = weighted / rate if rate > 0.0 else body
 
     @ti.kernel
-    def _substep(self, src: ti.template(), dst: ti.template(), dt: ti.f32, alpha: ti.f32, ln_a: ti.f32, ea_r: ti.f32, t_char: ti.f32, char_rate: ti.f32):
+    def _substep(self, src: ti.template(), dst: ti.template(), dt: ti.f32, alpha: ti.f32, ln_a: ti.f32, ea_r: ti.f32, t_damage: ti.f32,
+                 t_char: ti.f32, char_rate: ti.f32):
         height, width = src.shape[0], src.shape[1]
         for r, c in src:
             if self.mask[r, c]:
@@ -265,7 +267,7 @@ class Cautery:
                     flux += w[k] * (src[rr, cc] - t0)
                 t1 = self._relax(r, c, t0 + dt * alpha * self.inv_area[r, c] * flux, dt)
                 dst[r, c] = t1
-                self._damage(r, c, t0, t1, dt, ln_a, ea_r, t_char, char_rate)
+                self._damage(r, c, t0, t1, dt, ln_a, ea_r, t_damage, t_char, char_rate)
 
     @ti.func
     def _relax(self, r, c, t, dt):
@@ -278,11 +280,12 @@ class Cautery:
         return t1
 
     @ti.func
-    def _damage(self, r, c, t0, t1, dt, ln_a, ea_r, t_char, char_rate):
-        """Arrhenius damage and char over dt at the mean of the temperatures before and after."""
+    def _damage(self, r, c, t0, t1, dt, ln_a, ea_r, t_damage, t_char, char_rate):
+        """Arrhenius damage (above t_damage) and char over dt at the mean of the temperatures before and after."""
         mid = 0.5 * (t0 + t1)
-        exponent = ti.min(ln_a - ea_r / (mid + KELVIN), 80.0)
-        self.omega[r, c] = ti.min(self.omega[r, c] + ti.exp(exponent) * dt, OMEGA_MAX)
+        if mid > t_damage:
+            exponent = ti.min(ln_a - ea_r / (mid + KELVIN), 80.0)
+            self.omega[r, c] = ti.min(self.omega[r, c] + ti.exp(exponent) * dt, OMEGA_MAX)
         if mid > t_char:
             self.char[r, c] = ti.min(self.char[r, c] + char_rate * (mid - t_char) * dt, 1.0)
 
@@ -415,7 +418,8 @@ class Cautery:
         self._reduce(RZ, 2)  # RZ, RR
 
     @ti.kernel
-    def _cg_finish(self, temperature: ti.template(), dt: ti.f32, ln_a: ti.f32, ea_r: ti.f32, t_char: ti.f32, char_rate: ti.f32):
+    def _cg_finish(self, temperature: ti.template(), dt: ti.f32, ln_a: ti.f32, ea_r: ti.f32, t_damage: ti.f32, t_char: ti.f32,
+                   char_rate: ti.f32):
         """T + d clamped into the bounds of T (maximum principle), relaxation, damage and char."""
         for r, c in temperature:
             if self.mask[r, c]:
@@ -427,7 +431,7 @@ class Cautery:
                     t1 = self.sums[HIGH]
                 t1 = self._relax(r, c, t1, dt)
                 temperature[r, c] = t1
-                self._damage(r, c, t0, t1, dt, ln_a, ea_r, t_char, char_rate)
+                self._damage(r, c, t0, t1, dt, ln_a, ea_r, t_damage, t_char, char_rate)
 
     # --- outputs ------------------------------------------------------------------------------
     def metrics(self) -> dict:

@@ -51,6 +51,8 @@ TISSUE = _table(
     ParamSpec("initial_temperature_c", "C", 37.0, 0.0, 60.0, "tissue temperature at t = 0"),
     ParamSpec("arrhenius_ln_a", "ln(1/s)", math.log(7.39e39), 10.0, 250.0, "natural log of the Arrhenius frequency factor A"),
     ParamSpec("activation_energy_j_mol", "J/mol", 2.577e5, 5.0e4, 8.0e5, "Arrhenius activation energy Ea"),
+    ParamSpec("damage_threshold_c", "C", 43.0, 20.0, 100.0,
+              "Arrhenius damage accumulates only above this temperature (the fitted A, Ea do not hold near body temperature)"),
     ParamSpec("char_temperature_c", "C", 180.0, 100.0, 400.0, "charring starts above this temperature"),
     ParamSpec("char_rate_1_s_c", "1/(s C)", 0.02, 0.0, 1.0, "char growth per second per degree above the charring temperature"),
 )

@@ -51,6 +51,26 @@ def test_arrhenius_under_relaxation_reduces_to_constant_temperature_and_is_monot
     assert analytic.arrhenius_omega_under_relaxation(1.0, 37.0, 80.0, 1.0, ln_a, ea) == pytest.approx(omega[1], rel=1e-9)
 
 
+def test_arrhenius_threshold_counts_only_the_time_above_it():
+    """Heating from 37 C toward 80 C crosses 43 C at t* = ln((80 - 37) / (80 - 43)) / rate: with the threshold, Omega(t)
+    is the plain integral from t* on, i.e. Omega_plain(t) - Omega_plain(t*)."""
+    liver = params.TISSUE_PRESETS["liver"]
+    ln_a, ea, rate = liver["arrhenius_ln_a"], liver["activation_energy_j_mol"], 1.5
+    crossing = math.log((80.0 - 37.0) / (80.0 - 43.0)) / rate
+    times = np.array([0.05, crossing, 0.5, 1.0, 3.0])
+    plain = analytic.arrhenius_omega_under_relaxation(times, 37.0, 80.0, rate, ln_a, ea)
+    plain_at_crossing = analytic.arrhenius_omega_under_relaxation(crossing, 37.0, 80.0, rate, ln_a, ea)
+    above = analytic.arrhenius_omega_under_relaxation(times, 37.0, 80.0, rate, ln_a, ea, threshold_c=43.0)
+    assert above[0] == 0.0 and above[1] == 0.0
+    assert above[2:] == pytest.approx(plain[2:] - plain_at_crossing, rel=1e-8)
+    # cooling from 80 C toward 37 C: damage stops for good once T falls below 43 C
+    cooled = math.log((80.0 - 37.0) / (43.0 - 37.0)) / rate
+    late = analytic.arrhenius_omega_under_relaxation(np.array([cooled, 5.0]), 80.0, 37.0, rate, ln_a, ea, threshold_c=43.0)
+    assert late[1] == pytest.approx(late[0], rel=1e-12) and late[0] > 0
+    assert analytic.arrhenius_time_to_omega(1.0, 40.0, ln_a, ea, threshold_c=43.0) == math.inf
+    assert analytic.arrhenius_time_to_omega(1.0, 60.0, ln_a, ea, threshold_c=43.0) == analytic.arrhenius_time_to_omega(1.0, 60.0, ln_a, ea)
+
+
 def test_pareto_front_keeps_only_runs_nothing_beats():
     from lab.bench.heat import pareto
 

@@ -53,3 +53,46 @@ def test_char_grows_linearly_above_char_temperature():
     for _ in range(100):
         cautery.step(0.01)
     assert cautery.char_level()[8, 8] == pytest.approx(0.01 * 20.0 * 1.0, rel=1e-3)
+
+
+def test_tissue_at_body_temperature_takes_no_damage_below_the_threshold():
+    """Liver's A and Ea, fitted at 50-80 C, give 3e-4 Omega/s at 37 C: an idle lab would whiten the whole tissue in
+    minutes. No damage accumulates at or below damage_threshold_c (43 C); with the threshold under 37 C it does."""
+    cautery, tissue = constant_temperature_cautery(37.0)
+    for _ in range(60):
+        cautery.step(10.0)  # ten minutes
+    assert cautery.damage_omega().max() == 0.0
+    cautery, tissue = constant_temperature_cautery(37.0, damage_threshold_c=20.0)
+    for _ in range(60):
+        cautery.step(10.0)
+    rate = math.exp(tissue["arrhenius_ln_a"] - tissue["activation_energy_j_mol"] / (GAS_CONSTANT * (37.0 + KELVIN)))
+    assert cautery.damage_omega()[8, 8] == pytest.approx(rate * 600.0, rel=1e-3)
+
+
+@pytest.mark.parametrize("scheme", ["explicit", "implicit"])
+def test_damage_starts_only_once_the_tissue_crosses_the_threshold(scheme):
+    """Both schemes: a plate at 80 C touching all of a 37 C plane relaxes it toward 80 C at the contact rate; Omega stays
+    0 until T passes 43 C and then follows the exact integral from the crossing on (dt 1 ms: within 1 %)."""
+    from sims import analytic
+    from sims.instruments import Instrument
+
+    plate = Instrument.from_config({
+        "name": "plate", "shape": {"type": "ball", "radius_mm": 100.0, "length_mm": 1, "width_mm": 1, "thickness_mm": 1},
+        "position_mm": [0.0, 0.0, -99.0], "direction": [0, 0, -1], "roll_deg": 0.0, "energized": True,
+        "tip_temperature_c": 80.0, "path": []})
+    surface = build_surface(plane_mesh(4.0, 4.0, cells=2), 16)
+    tissue = tissue_values(perfusion_1_s=0.0, initial_temperature_c=37.0)
+    cautery = Cautery(surface, tissue, cautery_values(), InstrumentFields([plate]), scheme=scheme)
+    rate = cautery.contact_rate_1_s
+    crossing = math.log((80.0 - 37.0) / (80.0 - 43.0)) / rate
+    dt, steps = 0.001, 0
+    while (steps + 2) * dt < crossing:
+        cautery.step(dt)
+        steps += 1
+    assert cautery.damage_omega()[8, 8] == 0.0
+    while steps * dt < crossing + 2.0:
+        cautery.step(dt)
+        steps += 1
+    exact = analytic.arrhenius_omega_under_relaxation(steps * dt, 37.0, 80.0, rate, tissue["arrhenius_ln_a"], tissue["activation_energy_j_mol"], 43.0)
+    assert exact > 0.01
+    assert cautery.damage_omega()[8, 8] == pytest.approx(exact, rel=0.01)

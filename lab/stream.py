@@ -10,7 +10,10 @@ drawn the new one (lab.client_sync: a browser that draws a frame every few secon
 get the add and the remove in one batch and show a hole while the new node parses).
 Node names come from a capped pool and are re-used (which keeps viser's replay buffer bounded), and
 replacement tiles are sent at most `max_tiles_per_s`: a tile that changes faster is sent later with
-its then newest crop, so stale textures are dropped instead of queued.
+its then newest crop, so stale textures are dropped instead of queued. When the budget runs short the
+tiles that changed most go first (a fresh burn before a fading one, weighed by how long each has
+waited), and a change of a level or two (cooling tissue fades by one level per update) waits
+`settle_s` to add up before it takes a slot.
 
 Call `update` and `close` from one thread (the simulation thread); a lock makes a `close` from
 another thread safe too.
@@ -185,12 +188,13 @@ class TextureStream:
     def __init__(self, server, surface, name: str = "/tissue", tiles: int = 8, hide_after_s: float = 3.0,
                  max_pool: int | None = None, max_tiles_per_s: float | None = None, image_format: str = "png",
                  seamless_normals: bool = True, roughness: float = 0.7, receive_shadow: bool = True,
-                 wait_for_clients: bool = True, max_hide_s: float = 15.0):
+                 wait_for_clients: bool = True, max_hide_s: float = 15.0, min_change: int = 3, settle_s: float = 1.0):
         """server: viser.ViserServer. surface: anything with vertices_mm (V, 3), faces (F, 3) and uv (V, 2) in [0, 1]
         (OBJ convention, v up), e.g. sims.surface.TissueSurface. name: the scene node holding the tiles.
         tiles: K, for K x K UV tiles. hide_after_s: how long a replaced tile node stays under its successor at least
         before it is removed, s. wait_for_clients: also wait until every browser has applied and drawn the successor
-        (lab.client_sync), but at most max_hide_s: one frozen browser must not stall the others.
+        (lab.client_sync), but at most max_hide_s: one frozen browser must not stall the others. min_change, settle_s: a
+        tile whose largest texel change is below min_change colour levels is re-sent only settle_s after its last send.
         max_pool: nodes allowed beyond one per tile, i.e. replaced tiles not yet removed (default K^2).
         max_tiles_per_s: replacement tiles sent per second at most, spread evenly (default max_pool / hide_after_s,
         which keeps the pool from running dry). image_format: "png" (exact) or "jpeg" (quality 90, no chroma
@@ -209,6 +213,7 @@ class TextureStream:
         self.roughness = float(roughness)
         self.receive_shadow = bool(receive_shadow)
         self.max_hide_s = float(max_hide_s)
+        self.min_change, self.settle_s = int(min_change), float(settle_s)
         self.sync = ClientSync(server) if wait_for_clients else None
         self._lock = threading.Lock()
         self._closed = False
@@ -262,7 +267,7 @@ class TextureStream:
     def update(self, rgb: np.ndarray) -> dict:
         """Send the tiles whose texture crop changed since the last update. rgb: (H, W, 3) uint8, image orientation.
         Returns {"tiles_sent": int, "bytes": int} (bytes = size of the GLB/texture payload handed to viser), and
-        "tiles_deferred": changed tiles left for a later update by the rate limit or the pool cap."""
+        "tiles_deferred": changed tiles left for a later update by the rate limit, the pool cap or settling."""
         start = time.perf_counter()
         rgb = np.asarray(rgb)
         if rgb.ndim != 3 or rgb.shape[2] < 3 or rgb.dtype != np.uint8:
@@ -277,8 +282,7 @@ class TextureStream:
             if rgb.shape[:2] != self._shape:
                 self._layout(rgb.shape[:2])
             self._refill(now)
-            changed = [t for t in self._tiles if t.sent is None or not np.array_equal(t.sent, t.geometry.crop(rgb))]
-            changed.sort(key=lambda t: t.sent_at)  # the longest-waiting tiles first when the budget runs short
+            changed, deferred = self._changed_by_priority(rgb, now)
             for tile in changed:
                 replacing = tile.node is not None
                 if replacing and self._tokens < 1.0:
@@ -330,6 +334,27 @@ class TextureStream:
             tile.geometry = _TileGeometry(tile.positions, tile.uv, tile.faces, tile.morph_ids, tile.morph_delta,
                                           self._shape, _MARGIN_TEXELS, self.roughness)
             tile.sent = None
+
+    def _changed_by_priority(self, rgb: np.ndarray, now: float) -> tuple[list[_Tile], int]:
+        """Tiles to send, most urgent first: never-sent tiles, then by largest texel change (colour levels) times
+        (1 + seconds waited); and the number of tiles whose change (below min_change levels) waits for settle_s since
+        the tile's last send."""
+        scored, settling = [], 0
+        for tile in self._tiles:
+            if tile.sent is None:
+                scored.append((float("inf"), tile))
+                continue
+            crop = tile.geometry.crop(rgb)
+            if np.array_equal(tile.sent, crop):
+                continue
+            change = int(np.abs(tile.sent.astype(np.int16) - crop).max())
+            waited = now - tile.sent_at
+            if change < self.min_change and waited < self.settle_s:
+                settling += 1
+                continue
+            scored.append((change * (1.0 + waited), tile))
+        scored.sort(key=lambda item: -item[0])
+        return [tile for _, tile in scored], settling
 
     def _encode(self, crop: np.ndarray) -> tuple[bytes, str]:
         buffer = io.BytesIO()

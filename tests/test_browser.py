@@ -452,6 +452,44 @@ def test_stream_rate_limit_defers_changed_tiles_and_sends_their_newest_crop(serv
     stream.close()
 
 
+def _sent_image(glb: bytes) -> np.ndarray:
+    import io
+
+    from PIL import Image
+
+    document, binary = _glb_parts(glb)
+    view = document["bufferViews"][document["images"][0]["bufferView"]]
+    return np.asarray(Image.open(io.BytesIO(binary[view["byteOffset"]:view["byteOffset"] + view["byteLength"]])))
+
+
+def test_stream_sends_the_largest_change_first_and_lets_faint_changes_settle(server):
+    """With one tile's budget: a fresh burn goes before a tile that changed less; a one-level change (tissue cooling)
+    waits settle_s and then goes too."""
+    from lab.stream import TextureStream
+
+    recorder = _Recorder(server)
+    stream = TextureStream(server, _bumpy_patch(), tiles=4, max_tiles_per_s=2.0, settle_s=1.0)  # one token per 0.5 s
+    image = np.full((64, 64, 3), 120, np.uint8)
+    stream.update(image)
+    image[3:13, 3:13] = 130     # inside the top-left tile only (crops overlap by 2 texels): a change of 10 levels
+    image[40:44, 40:44] = 250   # a fresh burn inside another tile
+    first = stream.update(image)
+    assert first["tiles_sent"] == 1 and first["tiles_deferred"] == 1
+    assert (_sent_image(recorder.sent[-1][1]) == 250).any(), "the burn should go first"
+    time.sleep(0.6)
+    assert stream.update(image)["tiles_sent"] == 1 and (_sent_image(recorder.sent[-1][1]) == 130).any()
+    time.sleep(0.6)
+    image[20:28, 20:28] = 140   # a third tile changes and goes...
+    assert stream.update(image)["tiles_sent"] == 1
+    image[20:28, 20:28] = 141   # ...and right after, by one level more
+    time.sleep(0.6)  # a token is back, settle_s (since the tile's last send) not over yet
+    assert stream.update(image) == {"tiles_sent": 0, "bytes": 0, "tiles_deferred": 1}, "a faint change waits to settle"
+    time.sleep(0.5)
+    assert stream.update(image)["tiles_sent"] == 1 and (_sent_image(recorder.sent[-1][1]) == 141).any()
+    assert stream.update(image)["tiles_deferred"] == 0
+    stream.close()
+
+
 def test_tile_glbs_cover_the_mesh_and_map_the_texture_the_right_way_up(server):
     import io
 

@@ -619,6 +619,7 @@ class LabApp:
 
     def close(self) -> None:
         self.stop_event.set()
+        self.stream.close()
         self.server.stop()
 
 

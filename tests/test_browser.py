@@ -289,13 +289,13 @@ def test_a_browser_that_stops_drawing_keeps_its_tiles_until_it_has_drawn_their_s
         paused_at = lab.stream.sync.mark()
         time.sleep(lab.stream.hide_after_s + 1.0)  # nodes the page had confirmed before the pause go meanwhile
         removed_before, pending_before = lab.stream.stats["removed"], lab.stream.pending_removals
-        time.sleep(5.0)
+        time.sleep(3.0)
         removed_while_frozen = lab.stream.stats["removed"] - removed_before
         assert lab.stream.sync.confirmed() < paused_at
         assert pending_before > 0, "nothing was replaced while the page was frozen"
         assert removed_while_frozen == 0, f"{removed_while_frozen} replaced nodes were removed while a page could not draw"
         cdp.send("Debugger.resume")
-        frames = frozen.record(min_seconds=8, min_frames=6, max_seconds=30)
+        frames = frozen.record(min_seconds=5, min_frames=5, max_seconds=30)
         holes = np.array([_holes(lab, image) for image in frames])
         for index in np.flatnonzero(holes > 20):
             browser.save(frames[index], tmp_path / f"hole_{index:02d}.png")

@@ -36,12 +36,16 @@ Heat: rho c dT/dt = k LB(T) + w_b rho_b c_b (T_body - T) + Q_tool.
   layer L and w(d) falling from 1 at contact (signed distance d <= 0) to 0 at the contact distance.
 - Damage: Omega += exp(ln A - Ea / (R T_K)) dt; coagulated fraction 1 - exp(-Omega).
 - Char: char += rate (T - T_char) dt above the charring temperature, capped at 1.
-Chart borders and masked texels are insulated (zero flux).
+UV chart seams conduct: texels that touch on the surface across a seam are linked with the weight
+the stencil gives that direction (sims.seams; symmetric, so the two properties above still hold).
+Open mesh borders and masked texels are insulated (zero flux).
 """
 import math
 
 import numpy as np
 import taichi as ti
+
+from sims.seams import seam_links
 
 GAS_CONSTANT = 8.314462618  # J/(mol K)
 KELVIN = 273.15
@@ -58,11 +62,11 @@ CG_CHUNK = 64               # texels of a row one thread sums; rows per block in
 NEIGHBOURS = ((0, 1), (0, -1), (1, 0), (-1, 0), (1, 1), (-1, -1), (-1, 1), (1, -1))
 
 
-def edge_weights(metric: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """Symmetric conductance weights (H, W, 8) to the neighbours in NEIGHBOURS (dimensionless).
+def direction_coefficients(metric: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """(H, W, 8) a texel's own conductance along each direction of NEIGHBOURS (dimensionless, 0 where masked).
 
-    metric: (H, W, 2, 2) in grid coordinates (x = columns, y = rows), mm^2 per texel^2.
-    """
+    metric: (H, W, 2, 2) in grid coordinates (x = columns, y = rows), mm^2 per texel^2. The conductance tensor
+    sqrt|g| g^-1 split into non-negative parts along the two axes and one diagonal."""
     g = metric.astype(np.float64)
     det = np.where(mask, g[..., 0, 0] * g[..., 1, 1] - g[..., 0, 1] ** 2, 1.0)
     root = np.sqrt(np.maximum(det, 1e-30))
@@ -75,14 +79,22 @@ def edge_weights(metric: np.ndarray, mask: np.ndarray) -> np.ndarray:
         "a": np.where(kxy < 0, cross, 0.0),   # along (+x, -y)
     }
     axis = {(0, 1): "x", (1, 0): "y", (1, 1): "d", (-1, 1): "a"}
+    return np.stack([np.where(mask, coef[axis.get((dr, dc)) or axis[(-dr, -dc)]], 0.0) for dr, dc in NEIGHBOURS], axis=-1)
+
+
+def edge_weights(metric: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Symmetric conductance weights (H, W, 8) to the neighbours in NEIGHBOURS (dimensionless): the mean of both
+    texels' coefficients where both lie on the surface.
+
+    metric: (H, W, 2, 2) in grid coordinates (x = columns, y = rows), mm^2 per texel^2.
+    """
+    coefficients = direction_coefficients(metric, mask)
     height, width = mask.shape
     weights = np.zeros((height, width, 8))
     padded_mask = np.pad(mask, 1)
     for index, (dr, dc) in enumerate(NEIGHBOURS):
-        name = axis.get((dr, dc)) or axis[(-dr, -dc)]
-        c = np.where(mask, coef[name], 0.0)
-        c_pad = np.pad(c, 1)
-        neighbour_c = c_pad[1 + dr: 1 + dr + height, 1 + dc: 1 + dc + width]
+        c = coefficients[..., index]
+        neighbour_c = np.pad(c, 1)[1 + dr: 1 + dr + height, 1 + dc: 1 + dc + width]
         neighbour_in = padded_mask[1 + dr: 1 + dr + height, 1 + dc: 1 + dc + width]
         weights[..., index] = np.where(mask & neighbour_in, 0.5 * (c + neighbour_c), 0.0)
     return weights.astype(np.float32)
@@ -114,9 +126,19 @@ class Cautery:
         self.weights = ti.Vector.field(8, ti.f32, shape)
         self.position = ti.Vector.field(3, ti.f32, shape)
         weights = edge_weights(surface.metric, surface.mask)
+        link_start, link_to, link_weight = seam_links(surface, direction_coefficients(surface.metric, surface.mask), NEIGHBOURS)
+        self.seam_links = len(link_to) // 2  # texel pairs linked across UV seams
+        self.link_start = ti.field(ti.i32, len(link_start))
+        self.link_to, self.link_weight = ti.field(ti.i32, max(len(link_to), 1)), ti.field(ti.f32, max(len(link_to), 1))
+        self.link_start.from_numpy(link_start)
+        if len(link_to):
+            self.link_to.from_numpy(link_to)
+            self.link_weight.from_numpy(link_weight)
         area = surface.texel_area_mm2
         inv_area = np.where(surface.mask, 1.0 / np.where(surface.mask, area, 1.0), 0.0).astype(np.float32)
-        self.max_exchange_1_mm2 = float((weights.sum(axis=2) * inv_area).max())  # max over texels of sum(w)/A
+        link_sum = np.bincount(np.repeat(np.arange(len(link_start) - 1), np.diff(link_start)), weights=link_weight,
+                               minlength=len(link_start) - 1).reshape(shape)
+        self.max_exchange_1_mm2 = float(((weights.sum(axis=2) + link_sum) * inv_area).max())  # max over texels of sum(w)/A
         self.mask.from_numpy(surface.mask.astype(np.int32))
         self.inv_area.from_numpy(inv_area)
         self.weights.from_numpy(weights)
@@ -265,6 +287,9 @@ class Cautery:
                     rr = ti.min(ti.max(r + NEIGHBOURS[k][0], 0), height - 1)
                     cc = ti.min(ti.max(c + NEIGHBOURS[k][1], 0), width - 1)
                     flux += w[k] * (src[rr, cc] - t0)
+                for m in range(self.link_start[r * width + c], self.link_start[r * width + c + 1]):
+                    j = self.link_to[m]
+                    flux += self.link_weight[m] * (src[j // width, j % width] - t0)
                 t1 = self._relax(r, c, t0 + dt * alpha * self.inv_area[r, c] * flux, dt)
                 dst[r, c] = t1
                 self._damage(r, c, t0, t1, dt, ln_a, ea_r, t_damage, t_char, char_rate)
@@ -350,6 +375,11 @@ class Cautery:
                         flux += w[k] * (temperature[rn, cn] - t0)
                         total += w[k]
                         spread += w[k] * self.delta[rn, cn]
+                    for m in range(self.link_start[r * width + c], self.link_start[r * width + c + 1]):
+                        jr, jc, wl = self.link_to[m] // width, self.link_to[m] % width, self.link_weight[m]
+                        flux += wl * (temperature[jr, jc] - t0)
+                        total += wl
+                        spread += wl * self.delta[jr, jc]
                     rhs = coupling * flux
                     diag = 1.0 / self.inv_area[r, c] + coupling * total
                     res = rhs - (diag * self.delta[r, c] - coupling * spread)
@@ -386,6 +416,9 @@ class Cautery:
                         rn = ti.min(ti.max(r + NEIGHBOURS[k][0], 0), height - 1)
                         cn = ti.min(ti.max(c + NEIGHBOURS[k][1], 0), width - 1)
                         spread += w[k] * (self.precond[rn, cn] + beta * self.direction[old, rn, cn])
+                    for m in range(self.link_start[r * width + c], self.link_start[r * width + c + 1]):
+                        jr, jc = self.link_to[m] // width, self.link_to[m] % width
+                        spread += self.link_weight[m] * (self.precond[jr, jc] + beta * self.direction[old, jr, jc])
                     q = self.diag[r, c] * p - coupling * spread
                     self.direction[new, r, c] = p
                     self.product[r, c] = q

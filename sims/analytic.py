@@ -10,6 +10,11 @@ def gaussian_on_plane(r2_mm2: np.ndarray, amplitude: float, sigma_mm: float, alp
     return amplitude * sigma_mm**2 / variance * np.exp(-r2_mm2 / (2.0 * variance))
 
 
+def sphere_l1_amplitude(alpha_mm2_s: float, radius_mm: float, t_s: float) -> float:
+    """Amplitude ratio after t of the l = 1 mode (cos theta) of diffusion on a sphere: exp(-2 alpha t / R^2)."""
+    return math.exp(-2.0 * alpha_mm2_s * t_s / radius_mm**2)
+
+
 def arrhenius_time_to_omega(omega: float, temperature_c: float, ln_a: float, activation_j_mol: float,
                             threshold_c: float = -math.inf) -> float:
     """Seconds at constant temperature until the Arrhenius integral reaches omega (inf at or below threshold_c, where

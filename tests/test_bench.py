@@ -95,6 +95,9 @@ def test_quick_bench_writes_finite_numbers_and_plots_for_every_section(tmp_path)
     assert scenes["default.yaml"]["ms_per_simulated_s"]["bleeding"] == 0.0
     assert scenes["hemostasis.yaml"]["ms_per_simulated_s"]["cautery"] > 0.0 and scenes["hemostasis.yaml"]["ms_per_simulated_s"]["bleeding"] > 0.0
     assert finite_numbers(results)
+    sphere = results["heat"]["sphere"]
+    assert {row["scheme"] for row in sphere} == {"explicit", "implicit"} and all(row["seam_links"] > 0 for row in sphere)
+    assert all(abs(row["rate_error_rel"]) < 0.02 for row in sphere), "heat across UV seams: the sphere's l = 1 mode"
     report = (tmp_path / "report.md").read_text()
     assert "Speed and accuracy" in report and results["device"]["arch"] in report
     assert "![heat_pareto.png](heat_pareto.png)" in report

@@ -1,5 +1,5 @@
-"""Heat: error against the analytic Gaussian (flat and 3:1 stretched plane) against cost, per texture size,
-time step and time-stepping scheme; a Pareto plot."""
+"""Heat: error against the analytic Gaussian (flat and 3:1 stretched plane) and the l = 1 mode on a sphere of many UV
+charts (seams) against cost, per texture size, time step and time-stepping scheme; a Pareto plot."""
 import numpy as np
 
 from lab.bench.common import save, BODY_C, plane_mesh, pyplot, synced_seconds
@@ -8,6 +8,8 @@ from sims import analytic
 SIDE_MM = 40.0
 SIGMA_MM = 0.5
 AMPLITUDE_C = 50.0
+SPHERE_RADIUS_MM = 5.0
+SPHERE_CONDUCTIVITY_W_MK = 5.0  # the slider's top: the mode decays 10 % per second on a 5 mm sphere
 
 
 def schemes() -> tuple:
@@ -52,6 +54,38 @@ def gaussian_run(size: int, dt_s: float, seconds: float, scheme: str = "explicit
     return row
 
 
+def sphere_run(size: int, dt_s: float, seconds: float, scheme: str = "explicit") -> dict:
+    """T = body + 10 cos(theta) on an xatlas-unwrapped icosphere (radius 5 mm, k 5 W/(m K), no perfusion) against the
+    analytic decay of the l = 1 mode: relative error of the amplitude's decay rate."""
+    import trimesh
+
+    from sims import params
+    from sims.cautery import Cautery
+    from sims.instruments import InstrumentFields
+    from sims.surface import build_surface
+
+    surface = build_surface(trimesh.creation.icosphere(subdivisions=4, radius=SPHERE_RADIUS_MM), size)
+    tissue = dict(params.TISSUE_PRESETS["liver"], perfusion_1_s=0.0, conductivity_w_mk=SPHERE_CONDUCTIVITY_W_MK)
+    cautery_params = {name: spec.default for name, spec in params.CAUTERY.items()}
+    cautery = Cautery(surface, tissue, cautery_params, InstrumentFields([]), scheme=scheme)
+    position = surface.position_mm.astype(np.float64)
+    cos_theta = position[..., 2] / np.maximum(np.linalg.norm(position, axis=-1), 1e-9)
+    weight = np.where(surface.mask, cos_theta * surface.texel_area_mm2, 0.0)
+
+    def amplitude():
+        return ((cautery.temperature_c() - BODY_C) * weight).sum() / (cos_theta * weight).sum()
+
+    cautery.set_temperature(BODY_C + 10.0 * cos_theta)
+    start = amplitude()
+    steps = max(2, int(round(seconds / dt_s)))
+    cautery.step(dt_s)  # compiles the kernels; not timed
+    wall = synced_seconds(lambda: cautery.step(dt_s), steps - 1)
+    measured_rate = -np.log(amplitude() / start) / (steps * dt_s)
+    exact_rate = -np.log(analytic.sphere_l1_amplitude(cautery.diffusivity_mm2_s, SPHERE_RADIUS_MM, 1.0))
+    return {"scheme": scheme, "texture_size": size, "dt_s": dt_s, "simulated_s": steps * dt_s, "seam_links": cautery.seam_links,
+            "rate_error_rel": float(measured_rate / exact_rate - 1.0), "ms_per_simulated_s": 1000.0 * wall / ((steps - 1) * dt_s)}
+
+
 def _work_per_step(cautery, dt_s: float) -> float:
     """Explicit substeps, or solver iterations, spent on the last step."""
     iterations = getattr(cautery, "last_iterations", None)
@@ -64,7 +98,10 @@ def run(quick: bool) -> dict:
     seconds = 0.5 if quick else 2.0
     rows = [gaussian_run(size, dt, seconds, scheme) for scheme in schemes() for size in sizes for dt in steps]
     stretched = [gaussian_run(size, 0.01, seconds, scheme, u_scale=1 / 3) for scheme in schemes() for size in sizes]
-    return {"sigma_mm": SIGMA_MM, "side_mm": SIDE_MM, "seconds": seconds, "plane": rows, "stretched": stretched}
+    sphere_sizes = (128,) if quick else (128, 256, 512)
+    sphere = [sphere_run(size, 0.01, seconds, scheme) for scheme in schemes() for size in sphere_sizes]
+    return {"sigma_mm": SIGMA_MM, "side_mm": SIDE_MM, "seconds": seconds, "plane": rows, "stretched": stretched,
+            "sphere_radius_mm": SPHERE_RADIUS_MM, "sphere": sphere}
 
 
 def pareto(rows: list[dict]) -> list[dict]:
@@ -99,6 +136,14 @@ def render(results: dict) -> list[str]:
               "| scheme | texels | texel along x (mm) | max error | ms per simulated s |", "|---|---|---|---|---|"]
     for row in results["stretched"]:
         lines.append(f"| {row['scheme']} | {row['texture_size']}² | {row['texel_mm']:.3f} | {row['max_error_rel']:.3%} | {row['ms_per_simulated_s']:.0f} |")
+    if results.get("sphere"):
+        lines += ["", f"Sphere (UV seams): the l = 1 mode cos(theta) on an xatlas-unwrapped icosphere of radius {results['sphere_radius_mm']:g} mm",
+                  f"(k = {SPHERE_CONDUCTIVITY_W_MK:g} W/(m K)), dt 0.01 s for {results['seconds']} s, against the analytic decay rate",
+                  "2 alpha / R² (heat crosses the seams through sims.seams links).", "",
+                  "| scheme | texels | seam links | decay rate error | ms per simulated s |", "|---|---|---|---|---|"]
+        for row in results["sphere"]:
+            lines.append(f"| {row['scheme']} | {row['texture_size']}² | {row['seam_links']} | {row['rate_error_rel']:+.3%} | "
+                         f"{row['ms_per_simulated_s']:.0f} |")
     return lines
 
 

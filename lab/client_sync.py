@@ -20,8 +20,11 @@ from __future__ import annotations
 
 import threading
 import time
+import warnings
 
 _KEY = "tissue-lab-sync"
+# a request raced with the client leaving: nothing is lost, the ping loop ends on the next check
+warnings.filterwarnings("ignore", message="Queued a LocalStorageGetItemRequestMessage on a closed connection")
 
 
 class ClientSync:

@@ -82,13 +82,9 @@ def direction_coefficients(metric: np.ndarray, mask: np.ndarray) -> np.ndarray:
     return np.stack([np.where(mask, coef[axis.get((dr, dc)) or axis[(-dr, -dc)]], 0.0) for dr, dc in NEIGHBOURS], axis=-1)
 
 
-def edge_weights(metric: np.ndarray, mask: np.ndarray) -> np.ndarray:
+def edge_weights(coefficients: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """Symmetric conductance weights (H, W, 8) to the neighbours in NEIGHBOURS (dimensionless): the mean of both
-    texels' coefficients where both lie on the surface.
-
-    metric: (H, W, 2, 2) in grid coordinates (x = columns, y = rows), mm^2 per texel^2.
-    """
-    coefficients = direction_coefficients(metric, mask)
+    texels' coefficients (direction_coefficients) where both lie on the surface."""
     height, width = mask.shape
     weights = np.zeros((height, width, 8))
     padded_mask = np.pad(mask, 1)
@@ -125,8 +121,9 @@ class Cautery:
         self.inv_area = ti.field(ti.f32, shape)
         self.weights = ti.Vector.field(8, ti.f32, shape)
         self.position = ti.Vector.field(3, ti.f32, shape)
-        weights = edge_weights(surface.metric, surface.mask)
-        link_start, link_to, link_weight = seam_links(surface, direction_coefficients(surface.metric, surface.mask), NEIGHBOURS)
+        coefficients = direction_coefficients(surface.metric, surface.mask)
+        weights = edge_weights(coefficients, surface.mask)
+        link_start, link_to, link_weight = seam_links(surface, coefficients, NEIGHBOURS)
         self.seam_links = len(link_to) // 2  # texel pairs linked across UV seams
         self.link_start = ti.field(ti.i32, len(link_start))
         self.link_to, self.link_weight = ti.field(ti.i32, max(len(link_to), 1)), ti.field(ti.f32, max(len(link_to), 1))

@@ -3,8 +3,8 @@ import math
 
 import numpy as np
 import pytest
-import trimesh
 
+from lab.bench.heat import SPHERE_RADIUS_MM, sphere_run, sphere_surface
 from sims import cautery as cautery_module
 from sims import params
 from sims.cautery import NEIGHBOURS, Cautery, direction_coefficients
@@ -13,41 +13,23 @@ from sims.seams import seam_links
 from sims.surface import build_surface
 from tests.helpers import cautery_values, plane_mesh, tissue_values
 
-RADIUS_MM = 5.0
-BODY = 37.0
-
-
 @pytest.fixture(scope="module")
 def sphere():
-    """An icosphere unwrapped by xatlas: a few dozen charts, so seams everywhere."""
-    return build_surface(trimesh.creation.icosphere(subdivisions=4, radius=RADIUS_MM), 128)
+    return sphere_surface(128)
 
 
-def l1_decay(surface, scheme: str, seconds: float = 5.0, dt: float = 0.05) -> tuple[float, float]:
-    """T = 37 + 10 cos(theta) diffusing on the sphere (k = 5 W/(m K), no perfusion): (measured, exact) amplitude ratio.
-    The exact decay is exp(-2 alpha t / R^2), the l = 1 eigenvalue of the Laplace-Beltrami operator."""
-    cautery = Cautery(surface, tissue_values(perfusion_1_s=0.0, conductivity_w_mk=5.0), cautery_values(), InstrumentFields([]),
-                      scheme=scheme)
-    position = surface.position_mm.astype(np.float64)
-    cos_theta = position[..., 2] / np.maximum(np.linalg.norm(position, axis=-1), 1e-9)
-    area, mask = surface.texel_area_mm2, surface.mask
-
-    def amplitude(field):
-        return ((field - BODY) * cos_theta * area)[mask].sum() / (cos_theta**2 * area)[mask].sum()
-
-    cautery.set_temperature(BODY + 10.0 * cos_theta)
-    start = amplitude(cautery.temperature_c())
-    steps = int(round(seconds / dt))
-    for _ in range(steps):
-        cautery.step(dt)
-    return amplitude(cautery.temperature_c()) / start, math.exp(-2.0 * cautery.diffusivity_mm2_s * steps * dt / RADIUS_MM**2)
+def l1_decay(scheme: str) -> tuple[float, float]:
+    """T = 37 + 10 cos(theta) diffusing for 5 s on the 128² sphere (k = 5 W/(m K), no perfusion): (measured, exact)
+    amplitude ratio. The exact decay is exp(-2 alpha t / R^2), the l = 1 eigenvalue of the Laplace-Beltrami operator."""
+    run = sphere_run(128, 0.05, 5.0, scheme)
+    return run["amplitude_ratio"], run["exact_ratio"]
 
 
 @pytest.mark.parametrize("scheme", ["explicit", "implicit"])
 def test_the_l1_mode_on_a_sphere_decays_at_the_analytic_rate(sphere, scheme):
     """Measured: -0.16 % (explicit) and -0.01 % (implicit) at 128²; with insulated seams the mode decays 37 % too
     slowly, since heat cannot leave a chart."""
-    measured, exact = l1_decay(sphere, scheme)
+    measured, exact = l1_decay(scheme)
     assert measured == pytest.approx(exact, rel=0.01)
 
 
@@ -55,7 +37,7 @@ def test_insulated_seams_would_fail_the_sphere(sphere, monkeypatch):
     """The sphere check above tells seams from no seams: without the links it is off by far more than its bound."""
     empty = (np.zeros(sphere.mask.size + 1, np.int32), np.zeros(0, np.int32), np.zeros(0, np.float32))
     monkeypatch.setattr(cautery_module, "seam_links", lambda *args: empty)
-    measured, exact = l1_decay(sphere, "explicit")
+    measured, exact = l1_decay("explicit")
     assert measured / exact - 1 > 0.1
 
 
@@ -95,7 +77,7 @@ def test_heat_stays_conserved_and_bounded_across_seams_at_the_slider_extremes(sp
     tip = params.INSTRUMENT["tip_temperature_c"].max
     ball = Instrument.from_config({
         "name": "ball", "shape": {"type": "ball", "radius_mm": 2.0, "length_mm": 1, "width_mm": 1, "thickness_mm": 1},
-        "position_mm": [0.0, 0.0, RADIUS_MM + 1.0], "direction": [0, 0, -1], "roll_deg": 0.0, "energized": True,
+        "position_mm": [0.0, 0.0, SPHERE_RADIUS_MM + 1.0], "direction": [0, 0, -1], "roll_deg": 0.0, "energized": True,
         "tip_temperature_c": tip, "path": []})
     heated = Cautery(sphere, tissue, cautery_values(), InstrumentFields([ball]), scheme=scheme)
     for _ in range(40):

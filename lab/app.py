@@ -171,23 +171,24 @@ class LabApp:
 
         Every build after the first starts a fresh Taichi runtime: Taichi frees no field of a dropped scene and
         allows 512 field trees per runtime (a hemostasis build makes 14), and a fresh runtime builds faster too."""
+        first_build = self.scene is None
         try:
             config = load_scene_config(path, override_texts(self.overrides))
         except ConfigError as exc:
-            if self.scene is None:
+            if first_build:
                 raise
             self.overrides = dict(self._built_with)
             self.notice = f"**not rebuilt: {exc}**"
             return
         notice = ""
-        if self.scene is not None:
+        if not first_build:
             self.stream.close()
             self.scene = None
             backend.shutdown()
         try:
             scene = Scene(config, self.arch)
         except ConfigError as exc:
-            if not hasattr(self, "_built_with"):
+            if first_build:
                 raise
             path, self.overrides = self.scene_path, dict(self._built_with)
             scene = Scene(load_scene_config(path, override_texts(self.overrides)), self.arch)

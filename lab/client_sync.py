@@ -59,11 +59,6 @@ class ClientSync:
             known = [self._sent.get(client_id, []) for client_id in clients]
         return min((sent[0] if len(sent) > self._spare else float("-inf") for sent in known), default=float("inf"))
 
-    def replies(self, client_id: int) -> int:
-        """Answered requests of this client remembered (up to the replies to spare plus one)."""
-        with self._lock:
-            return len(self._sent.get(client_id, []))
-
     def close(self) -> None:
         self._stop.set()
 

@@ -164,9 +164,8 @@ class _TileGeometry:
 class _Node:
     name: str
     handle: object = None
-    replaced_at: float = 0.0  # when its successor was added, time.monotonic() s
+    replaced_at: float = 0.0     # when its successor was added, time.monotonic() s
     successor_mark: float = 0.0  # ClientSync position after its successor's message
-    remove_at: float = 0.0    # not removed before this
 
 
 @dataclass
@@ -297,7 +296,7 @@ class TextureStream:
                 handle = self.server.scene.add_glb(name, glb, visible=True, cast_shadow=False, receive_shadow=self.receive_shadow)
                 if replacing:
                     self._tokens -= 1.0
-                    tile.node.replaced_at, tile.node.remove_at = now, now + self.hide_after_s
+                    tile.node.replaced_at = now
                     tile.node.successor_mark = self.sync.mark() if self.sync is not None else 0.0
                     self._retiring.append(tile.node)
                 tile.node, tile.sent, tile.sent_at = _Node(name, handle), crop, now
@@ -369,7 +368,7 @@ class TextureStream:
         """Remove replaced nodes whose delay has passed and whose successor every browser shows; their names go back
         to the pool. Oldest first: both conditions hold for a prefix of the list."""
         confirmed = self.sync.confirmed() if self.sync is not None and self._retiring else float("inf")
-        while self._retiring and self._retiring[0].remove_at <= now:
+        while self._retiring and self._retiring[0].replaced_at + self.hide_after_s <= now:
             node = self._retiring[0]
             if confirmed < node.successor_mark:
                 if now < node.replaced_at + self.max_hide_s:

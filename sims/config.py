@@ -9,6 +9,8 @@ from __future__ import annotations
 import copy
 import difflib
 import math
+import re
+import stat
 from pathlib import Path
 
 import yaml
@@ -16,6 +18,8 @@ import yaml
 from sims import params
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
+MAX_SCENE_BYTES = 1_000_000  # a scene file is a page of YAML; anything larger is refused before it is read
+NAME_PATTERN = re.compile(r"[A-Za-z0-9_\-]{1,64}")
 MODELS = ("cautery", "bleeding")
 STAGE_FIELDS = ("coagulation", "char", "omega", "temperature_c")
 SHAPE_TYPES = ("ball", "capsule", "spatula", "mesh")
@@ -93,6 +97,16 @@ class Text:
             ctx.fail(key, f"expected a non-empty string, got {value!r}")
         if self.choices and value not in self.choices:
             ctx.fail(key, f"unknown value {value!r}; expected one of: {', '.join(self.choices)}")
+        return value
+
+
+class Name(Text):
+    """A name that parameter keys carry (`instruments.<name>.tip_temperature_c`): letters, digits, _ and - only."""
+
+    def validate(self, value, key, ctx):
+        value = super().validate(value, key, ctx)
+        if not NAME_PATTERN.fullmatch(value):
+            ctx.fail(key, f"{value!r}: a name takes letters, digits, _ and - only")
         return value
 
 
@@ -245,7 +259,7 @@ _KEYFRAME = Record(
 
 _INSTRUMENT = Record(
     {
-        "name": Text(),
+        "name": Name(),
         "shape": Record(
             {"type": Text(choices=SHAPE_TYPES), **_numbers(params.SHAPE), "file": FilePath()},
             required=("type",),
@@ -282,7 +296,7 @@ _BLEED_KEYFRAME = Record(
 
 _BLEED_POINT = Record(
     {
-        "name": Text(),
+        "name": Name(),
         "position_mm": Vector(None),
         **_numbers(params.BLEED_POINT),
         "start_s": Number(_TIME, default=0.0),
@@ -348,16 +362,33 @@ def apply_override(raw: dict, parts: list[str], value, ctx: _Context) -> None:
             ctx.fail(".".join(parts[:depth]), f"--set: cannot set {part!r} inside a {type(node).__name__}")
 
 
+def _read_scene_text(path: Path, ctx: _Context) -> str:
+    """The file's text: a regular file (not a FIFO or a device) of at most MAX_SCENE_BYTES, UTF-8."""
+    try:
+        info = path.stat()
+        if not stat.S_ISREG(info.st_mode):
+            ctx.fail("(file)", "not a regular file")
+        if info.st_size > MAX_SCENE_BYTES:
+            ctx.fail("(file)", f"{info.st_size} bytes; a scene file is at most {MAX_SCENE_BYTES} bytes")
+        with open(path, "rb") as handle:
+            data = handle.read(MAX_SCENE_BYTES + 1)
+    except FileNotFoundError:
+        ctx.fail("(file)", "scene file not found")
+    except OSError as exc:
+        ctx.fail("(file)", f"cannot read scene file: {exc.strerror or exc}")
+    if len(data) > MAX_SCENE_BYTES:
+        ctx.fail("(file)", f"more than {MAX_SCENE_BYTES} bytes; a scene file is at most that")
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        ctx.fail("(file)", f"cannot read scene file: not UTF-8 text ({exc.reason} at byte {exc.start})")
+
+
 def load_scene_config(path, overrides: list[str] = ()) -> dict:
     """Read, override and validate a scene file. Raises ConfigError naming file and key."""
     path = Path(path)
     ctx = _Context(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        ctx.fail("(file)", "scene file not found")
-    except (OSError, UnicodeDecodeError) as exc:
-        ctx.fail("(file)", f"cannot read scene file: {exc}")
+    text = _read_scene_text(path, ctx)
     try:
         raw = yaml.safe_load(text)
     except yaml.YAMLError as exc:

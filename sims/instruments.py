@@ -46,26 +46,46 @@ class Pose:
 
 
 @dataclass
+class HandPlacement:
+    """Where a hand holds a tool it took over from the script: position (mm), direction and roll (deg)."""
+
+    position_mm: np.ndarray
+    direction: np.ndarray
+    roll_deg: float
+
+
+@dataclass
 class Instrument:
-    """A validated scene instrument (see sims.config) and its scripted path."""
+    """A validated scene instrument (see sims.config) and its scripted path.
+
+    A hand (the browser, a script) can take the tool's placement over (`hand`) and switch it on or off
+    (`energized_by_hand`); everything else, the tip temperature included, stays a parameter of the tool, so a
+    scripted tool keeps following its path when a slider changes. `release` gives the tool back to its script."""
 
     name: str
     shape: dict
     base: Pose
     path: list = field(default_factory=list)
     suction: dict | None = None  # {radius_mm, rate_ml_s}: a sucker; removes blood while on, never heats
-    override: Pose | None = None  # a pose set live (browser), used instead of the scripted path
+    hand: HandPlacement | None = None      # placement set by a hand, used instead of the path's
+    energized_by_hand: bool | None = None  # on/off set by a hand, used instead of the path's
 
     @classmethod
     def from_config(cls, item: dict) -> "Instrument":
         base = Pose(np.array(item["position_mm"]), np.array(item["direction"]), item["roll_deg"], item["energized"], item["tip_temperature_c"])
         return cls(item["name"], item["shape"], base, item["path"], item.get("suction"))
 
-    def pose_at(self, t_s: float) -> Pose:
-        """Pose at time t: the live override if set, else keyframe values interpolated linearly
-        (energized holds its last value)."""
-        if self.override is not None:
-            return self.override
+    @property
+    def held(self) -> bool:
+        """True while a hand places or switches the tool (it does not follow its script)."""
+        return self.hand is not None or self.energized_by_hand is not None
+
+    def release(self) -> None:
+        """Back to the script: the path's placement and switching from now on."""
+        self.hand, self.energized_by_hand = None, None
+
+    def scripted_pose_at(self, t_s: float) -> Pose:
+        """The path's pose at time t: keyframe values interpolated linearly (energized holds its last value)."""
         base = self.base
         return Pose(
             np.asarray(paths.interpolate(self.path, "position_mm", t_s, base.position_mm), np.float64),
@@ -74,6 +94,30 @@ class Instrument:
             bool(paths.hold(self.path, "energized", t_s, base.energized)),
             float(paths.interpolate(self.path, "tip_temperature_c", t_s, base.tip_temperature_c)),
         )
+
+    def pose_at(self, t_s: float) -> Pose:
+        """Pose at time t: the script's, with the hand's placement and switch where a hand set them."""
+        pose = self.scripted_pose_at(t_s)
+        if self.hand is not None:
+            pose.position_mm, pose.direction, pose.roll_deg = self.hand.position_mm, self.hand.direction, self.hand.roll_deg
+        if self.energized_by_hand is not None:
+            pose.energized = self.energized_by_hand
+        return pose
+
+    def script_end_s(self) -> float:
+        """Time of the last keyframe (0 without a path)."""
+        return max((frame["t_s"] for frame in self.path), default=0.0)
+
+    def tip_offset_mm(self) -> float:
+        """Distance from the tool's origin to its tip along `direction`, mm (where it first touches what it points at)."""
+        kind = self.shape["type"]
+        if kind in ("ball", "capsule"):
+            return float(self.shape["radius_mm"])
+        if kind == "spatula":
+            return 0.0
+        import trimesh
+
+        return float(max(0.0, -trimesh.load(str(self.shape["file"]), force="mesh").vertices[:, 2].min()))
 
 
 # --- mesh instruments: signed distance grid --------------------------------------------------

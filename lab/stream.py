@@ -5,15 +5,34 @@ browser while the new GLB parses (DESIGN section 5). So the mesh is cut into K x
 triangle goes to the tile of its UV centroid); every tile is its own GLB node textured with the crop
 of the texture over its UV box plus a margin. An update re-sends only the tiles whose crop changed,
 each as a NEW node added visible over the old one (the newest identical copy draws last and wins);
-the old node is removed at least `hide_after_s` later and only once every browser has applied and
+the old node is removed at least `hide_after_s` later and only once that browser has applied and
 drawn the new one (lab.client_sync: a browser that draws a frame every few seconds would otherwise
 get the add and the remove in one batch and show a hole while the new node parses).
-Node names come from a capped pool and are re-used (which keeps viser's replay buffer bounded), and
-replacement tiles are sent at most `max_tiles_per_s`: a tile that changes faster is sent later with
-its then newest crop, so stale textures are dropped instead of queued. When the budget runs short the
-tiles that changed most go first (a fresh burn before a fading one, weighed by how long each has
-waited), and a change of a level or two (cooling tissue fades by one level per update) waits
-`settle_s` to add up before it takes a slot.
+
+Publishing is shared, delivery is per browser. An update publishes changed tiles at most
+`max_tiles_per_s` (a tile that changes faster is published later with its then newest crop, so
+stale textures are dropped instead of queued); when the budget runs short the tiles that changed
+most go first (a fresh burn before a fading one, weighed by how long each has waited), and a change
+of a level or two (cooling tissue fades by one level per update) waits `settle_s` to add up before
+it takes a slot. Each published tile is encoded once into a GLB. Then every browser gets, through
+viser's per-client scene (`client.scene`), the newest published version of each tile it lacks, as
+a node of its own drawn from its own capped pool of names (which keeps viser's buffers bounded); its
+replaced nodes wait for its own confirmations only. A tile is replaced for a browser only once that
+browser has applied the tile's current node: one that applies a batch every few seconds gets the
+newest version then, instead of every version in between (each of which it would parse, and draw
+under its successor until removed). A browser that is slow, frozen or silent (never answers the
+sync request) gets replacements only as fast as it applies them, or none, and its names run out
+before viser's queue for it grows: it slows only itself. A new browser gets every tile at
+once; one that leaves takes its nodes with it.
+
+The trade-off against one shared scene (`server.scene`, as before): a GLB goes through viser's
+message path once per browser instead of once; that costs little, since viser serializes and
+compresses every message per connection anyway (one producer per client), and the tiles no longer
+sit in viser's persistent broadcast buffer that every new browser replays. With a shared scene, a
+node can only be removed once every browser has drawn its successor, so one browser that never
+answers held every removal for max_hide_s (15 s) and dried up the shared pool: a normal browser's
+stream fell from 21 to 4 tiles/s. Per browser, node names and confirmations are private, and the
+normal browser keeps its full rate.
 
 Call `update` and `close` from one thread (the simulation thread); a lock makes a `close` from
 another thread safe too.
@@ -25,6 +44,7 @@ import json
 import struct
 import threading
 import time
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -34,6 +54,8 @@ from lab.client_sync import ClientSync
 from sims.surface import welded_normal_sums
 
 _MARGIN_TEXELS = 2
+# a browser left between the stream listing it and sending to it: nothing is lost, it is dropped on the next update
+warnings.filterwarnings("ignore", message="Queued a (GlbMessage|FrameMessage) on a closed connection")
 _LINEAR, _CLAMP = 9729, 33071  # glTF sampler constants
 
 
@@ -165,7 +187,8 @@ class _Node:
     name: str
     handle: object = None
     replaced_at: float = 0.0     # when its successor was added, time.monotonic() s
-    successor_mark: float = 0.0  # ClientSync position after its successor's message
+    mark: float = 0.0            # stream position after its own message (ClientSync positions)
+    successor_mark: float = 0.0  # stream position after its successor's message
 
 
 @dataclass
@@ -176,9 +199,94 @@ class _Tile:
     morph_ids: np.ndarray            # (k,) ghost corners, moved onto their vertex by a morph target
     morph_delta: np.ndarray          # (k, 3)
     geometry: _TileGeometry | None = None
-    sent: np.ndarray | None = None   # the crop last handed to viser
+    sent: np.ndarray | None = None   # the crop last published
     sent_at: float = -1.0
-    node: _Node | None = None        # the newest node showing this tile
+    glb: bytes | None = None         # the GLB of that crop, shared by every browser
+    version: int = -1                # which publication it is (stream-wide count; -1: none in this layout)
+
+
+class _Viewer:
+    """One browser's share of the stream: its own tile nodes (viser's per-client scene) under its own root, the
+    version of every tile it was sent, the replaced nodes it has not confirmed yet, and its pool of node names."""
+
+    def __init__(self, client, name: str, tile_count: int, max_nodes: int, receive_shadow: bool):
+        self.client = client
+        self.name = name
+        self.receive_shadow = receive_shadow
+        self.root = client.scene.add_frame(name, show_axes=False)
+        self.nodes: list[_Node | None] = [None] * tile_count  # the newest node showing each tile
+        self.versions = [-1] * tile_count                      # the version each tile node shows
+        self.added_at = [-1.0] * tile_count                    # when each was added, time.monotonic() s
+        self.retiring: list[_Node] = []                        # replaced nodes, oldest first
+        self.max_nodes = max_nodes
+        self.names: list[str] = []                             # every node name this browser has been sent
+        self.free: list[str] = []                              # names not in its scene now
+        self.stats = {"tiles_sent": 0, "tiles_behind": 0, "removed": 0, "removed_unconfirmed": 0}
+
+    def show(self, tiles: list[_Tile], now: float, applied: float, next_mark) -> int:
+        """Send this browser the newest published version of every tile it lacks, those it has waited for longest
+        first, while node names last; a tile is replaced only once the browser has applied its current node
+        (applied: its ClientSync position), so a browser that applies slowly gets the newest version then instead of
+        every version in between. next_mark(): the stream position after one more message. Returns the number of
+        tiles sent."""
+        lacking = [i for i, tile in enumerate(tiles) if tile.glb is not None and self.versions[i] != tile.version]
+        stale = [i for i in lacking if self.nodes[i] is None or self.nodes[i].mark <= applied]
+        stale.sort(key=lambda i: self.added_at[i])
+        sent = 0
+        for i in stale:
+            name = self._take_name()
+            if name is None:
+                break
+            handle = self.client.scene.add_glb(name, tiles[i].glb, visible=True, cast_shadow=False,
+                                               receive_shadow=self.receive_shadow)
+            mark = next_mark()
+            old = self.nodes[i]
+            if old is not None:
+                old.replaced_at, old.successor_mark = now, mark
+                self.retiring.append(old)
+            self.nodes[i], self.versions[i], self.added_at[i] = _Node(name, handle, mark=mark), tiles[i].version, now
+            sent += 1
+        self.stats["tiles_sent"] += sent
+        self.stats["tiles_behind"] += len(lacking) - sent
+        return sent
+
+    def remove_retired(self, now: float, confirmed: float, hide_after_s: float,
+                       max_hide_s: float | None) -> tuple[int, int]:
+        """Remove replaced nodes whose delay has passed and whose successor this browser has drawn (confirmed: its
+        ClientSync position), or that waited max_hide_s; their names go back to the pool. Oldest first: both
+        conditions hold for a prefix of the list. Returns (nodes removed, of those without confirmation)."""
+        removed = unconfirmed = 0
+        while self.retiring and self.retiring[0].replaced_at + hide_after_s <= now:
+            node = self.retiring[0]
+            if confirmed < node.successor_mark:
+                if max_hide_s is None or now < node.replaced_at + max_hide_s:
+                    break
+                unconfirmed += 1
+            self.retiring.pop(0)
+            node.handle.remove()
+            self.free.append(node.name)
+            removed += 1
+        self.stats["removed"] += removed
+        self.stats["removed_unconfirmed"] += unconfirmed
+        return removed, unconfirmed
+
+    def node_count(self) -> int:
+        return sum(node is not None for node in self.nodes) + len(self.retiring)
+
+    def close(self) -> None:
+        """Remove this browser's tile nodes (its root and everything below it)."""
+        try:
+            self.root.remove()
+        except Exception:  # the client or the server may be gone already
+            pass
+
+    def _take_name(self) -> str | None:
+        if self.free:
+            return self.free.pop()
+        if len(self.names) >= self.max_nodes:
+            return None
+        self.names.append(f"{self.name}/n{len(self.names):04d}")
+        return self.names[-1]
 
 
 class TextureStream:
@@ -187,19 +295,23 @@ class TextureStream:
     def __init__(self, server, surface, name: str = "/tissue", tiles: int = 8, hide_after_s: float = 3.0,
                  max_pool: int | None = None, max_tiles_per_s: float | None = None, image_format: str = "png",
                  seamless_normals: bool = True, roughness: float = 0.7, receive_shadow: bool = True,
-                 wait_for_clients: bool = True, max_hide_s: float = 15.0, min_change: int = 3, settle_s: float = 1.0):
+                 wait_for_clients: bool = True, max_hide_s: float | None = None, min_change: int = 3,
+                 settle_s: float = 1.0):
         """server: viser.ViserServer. surface: anything with vertices_mm (V, 3), faces (F, 3) and uv (V, 2) in [0, 1]
-        (OBJ convention, v up), e.g. sims.surface.TissueSurface. name: the scene node holding the tiles.
+        (OBJ convention, v up), e.g. sims.surface.TissueSurface. name: the scene node holding each browser's tiles.
         tiles: K, for K x K UV tiles. hide_after_s: how long a replaced tile node stays under its successor at least
-        before it is removed, s. wait_for_clients: also wait until every browser has applied and drawn the successor
-        (lab.client_sync), but at most max_hide_s: one frozen browser must not stall the others. min_change, settle_s: a
-        tile whose largest texel change is below min_change colour levels is re-sent only settle_s after its last send.
-        max_pool: nodes allowed beyond one per tile, i.e. replaced tiles not yet removed (default K^2).
-        max_tiles_per_s: replacement tiles sent per second at most, spread evenly (default max_pool / hide_after_s,
-        which keeps the pool from running dry). image_format: "png" (exact) or "jpeg" (quality 90, no chroma
-        subsampling: about a third of the bytes at 512^2, not bit-exact). seamless_normals: add invisible triangles so
-        the normals the browser recomputes per tile equal those of the whole mesh welded at UV seams.
-        roughness: the material's PBR roughness (metalness 0). receive_shadow: shadows of other objects fall on it."""
+        before it is removed, s. wait_for_clients: also wait until the browser has applied and drawn the successor
+        (lab.client_sync). max_hide_s: remove a replaced node after this long even if its browser has not confirmed
+        its successor, s (None: never; a browser that does not answer only stops getting replacements once its
+        max_pool nodes are used up). min_change, settle_s: a tile whose largest texel change is below min_change
+        colour levels is re-published only settle_s after its last publication.
+        max_pool: node names per browser beyond one per tile, i.e. replaced tiles not yet removed (default K^2).
+        max_tiles_per_s: tile versions published per second at most, spread evenly (default max_pool / hide_after_s,
+        which keeps the pool of a browser that keeps up from running dry). image_format: "png" (exact) or "jpeg"
+        (quality 90, no chroma subsampling: about a third of the bytes at 512^2, not bit-exact). seamless_normals:
+        add invisible triangles so the normals the browser recomputes per tile equal those of the whole mesh welded
+        at UV seams. roughness: the material's PBR roughness (metalness 0). receive_shadow: shadows of other objects
+        fall on it."""
         if tiles < 1:
             raise ValueError("tiles must be >= 1")
         if image_format not in ("png", "jpeg"):
@@ -211,11 +323,31 @@ class TextureStream:
         self.image_format = image_format
         self.roughness = float(roughness)
         self.receive_shadow = bool(receive_shadow)
-        self.max_hide_s = float(max_hide_s)
+        self.max_hide_s = None if max_hide_s is None else float(max_hide_s)
         self.min_change, self.settle_s = int(min_change), float(settle_s)
-        self.sync = ClientSync(server) if wait_for_clients else None
         self._lock = threading.Lock()
         self._closed = False
+        self._queued = 0        # tile messages queued to any browser so far: the ClientSync positions
+        self._publications = 0  # tile versions published so far
+        self.sync = ClientSync(server, position=lambda: self._queued) if wait_for_clients else None
+        self._tiles = self._cut(surface, seamless_normals)
+        self.max_pool = tiles * tiles if max_pool is None else max(int(max_pool), 0)
+        if max_tiles_per_s is None:
+            max_tiles_per_s = self.max_pool / self.hide_after_s if self.hide_after_s > 0 else float("inf")
+        self.max_tiles_per_s = float(max_tiles_per_s)
+        self._burst = max(1.0, 0.5 * self.max_tiles_per_s)  # tiles that may go at once after a quiet spell
+        self._tokens, self._tokens_at = self._burst, None
+        self._viewers: dict[int, _Viewer] = {}  # client id -> its share of the stream
+        self._shape = None
+        self.stats = {"updates": 0, "tiles_sent": 0, "bytes": 0, "tiles_deferred": 0, "python_s": 0.0,
+                      "tiles_delivered": 0, "removed": 0, "removed_unconfirmed": 0}
+        # tiles_sent, bytes, tiles_deferred: versions published; tiles_delivered: tile nodes sent, all browsers;
+        # removed: replaced nodes removed, all browsers; of those, removed_unconfirmed: after max_hide_s without
+        # their browser's confirmation
+
+    def _cut(self, surface, seamless_normals: bool) -> list[_Tile]:
+        """The K x K UV tiles of the surface (a triangle goes to the tile of its UV centroid), with normal ghosts."""
+        tiles = self.tiles
         positions = np.asarray(surface.vertices_mm, np.float32)
         all_faces = np.asarray(surface.faces, np.int64)
         uv = np.asarray(surface.uv, np.float32)
@@ -224,7 +356,7 @@ class TextureStream:
         col = np.clip((centroid[:, 0] * tiles).astype(np.int64), 0, tiles - 1)
         row = np.clip(((1.0 - centroid[:, 1]) * tiles).astype(np.int64), 0, tiles - 1)
         key = row * tiles + col
-        self._tiles: list[_Tile] = []
+        out = []
         for tile_key in np.unique(key):
             vertex_ids, local = np.unique(all_faces[key == tile_key], return_inverse=True)
             tile_positions, tile_uv, faces = positions[vertex_ids], uv[vertex_ids], local.reshape(-1, 3)
@@ -235,109 +367,125 @@ class TextureStream:
                 tile_positions = np.concatenate([tile_positions, extra])
                 tile_uv = np.concatenate([tile_uv, tile_uv[source]])
                 faces = np.concatenate([faces, ghost_faces])
-            self._tiles.append(_Tile(tile_positions, tile_uv, faces, morph_ids, morph_delta))
-        self.max_pool = tiles * tiles if max_pool is None else max(int(max_pool), 0)
-        if max_tiles_per_s is None:
-            max_tiles_per_s = self.max_pool / self.hide_after_s if self.hide_after_s > 0 else float("inf")
-        self.max_tiles_per_s = float(max_tiles_per_s)
-        self._burst = max(1.0, 0.5 * self.max_tiles_per_s)  # tiles that may go at once after a quiet spell
-        self._tokens, self._tokens_at = self._burst, None
-        self._max_nodes = len(self._tiles) + self.max_pool
-        self._names: list[str] = []      # every node name this stream has used
-        self._free: list[str] = []       # names not in the scene now
-        self._retiring: list[_Node] = []  # replaced nodes, oldest first
-        self._shape = None
-        self.stats = {"updates": 0, "tiles_sent": 0, "bytes": 0, "tiles_deferred": 0, "python_s": 0.0,
-                      "removed": 0, "removed_unconfirmed": 0}  # replaced nodes removed; of those, after max_hide_s
-        # without every browser's confirmation
-        self._root = server.scene.add_frame(self.name, show_axes=False)
+            out.append(_Tile(tile_positions, tile_uv, faces, morph_ids, morph_delta))
+        return out
 
     # --- public -----------------------------------------------------------------------------
     @property
     def node_count(self) -> int:
-        """Tile nodes in the scene now (one per tile plus the replaced ones not yet removed)."""
-        return sum(tile.node is not None for tile in self._tiles) + len(self._retiring)
+        """Tile nodes in the browsers' scenes now, all browsers (each: one per tile plus its replaced ones not yet
+        removed)."""
+        return sum(viewer.node_count() for viewer in list(self._viewers.values()))
 
     @property
     def pending_removals(self) -> int:
-        """Replaced tile nodes still in the scene, waiting for their delay and the browsers' confirmation."""
-        return len(self._retiring)
+        """Replaced tile nodes still in the browsers' scenes, all browsers, waiting for their delay and their
+        browser's confirmation."""
+        return sum(len(viewer.retiring) for viewer in list(self._viewers.values()))
+
+    def client_stats(self, client_id: int) -> dict:
+        """One browser's share: {"nodes", "pending_removals", "tiles_sent" (tile nodes sent to it), "tiles_behind"
+        (summed over updates: tiles it lacked the newest version of after the update), "removed",
+        "removed_unconfirmed"}; all zero for a client the stream has not seen."""
+        viewer = self._viewers.get(client_id)
+        if viewer is None:
+            return {"nodes": 0, "pending_removals": 0, "tiles_sent": 0, "tiles_behind": 0, "removed": 0,
+                    "removed_unconfirmed": 0}
+        return {"nodes": viewer.node_count(), "pending_removals": len(viewer.retiring), **viewer.stats}
 
     def update(self, rgb: np.ndarray) -> dict:
-        """Send the tiles whose texture crop changed since the last update. rgb: (H, W, 3) uint8, image orientation.
-        Returns {"tiles_sent": int, "bytes": int} (bytes = size of the GLB/texture payload handed to viser), and
-        "tiles_deferred": changed tiles left for a later update by the rate limit, the pool cap or settling."""
+        """Publish the tiles whose texture crop changed since their last publication, and send every browser the
+        tiles it lacks. rgb: (H, W, 3) uint8, image orientation. Returns {"tiles_sent": int, "bytes": int}: tile
+        versions published (each encoded once, then sent to every browser that keeps up) and their GLB bytes (what
+        viser gets per browser), and "tiles_deferred": changed tiles left for a later update by the rate limit or
+        settling."""
         start = time.perf_counter()
         rgb = np.asarray(rgb)
         if rgb.ndim != 3 or rgb.shape[2] < 3 or rgb.dtype != np.uint8:
             raise ValueError(f"expected an (H, W, 3) uint8 image, got {rgb.dtype} {rgb.shape}")
         rgb = rgb[:, :, :3]
-        sent = size = deferred = 0
         with self._lock:
             if self._closed:
                 return {"tiles_sent": 0, "bytes": 0, "tiles_deferred": 0}
             now = time.monotonic()
-            self._remove_retired(now)
             if rgb.shape[:2] != self._shape:
                 self._layout(rgb.shape[:2])
-            self._refill(now)
-            changed, deferred = self._changed_by_priority(rgb, now)
-            for tile in changed:
-                replacing = tile.node is not None
-                if replacing and self._tokens < 1.0:
-                    deferred += 1
-                    continue
-                name = self._take_name()
-                if name is None:
-                    deferred += 1
-                    continue
-                crop = np.array(tile.geometry.crop(rgb))  # a copy: the caller may reuse its buffer
-                glb = tile.geometry.glb(*self._encode(crop))
-                handle = self.server.scene.add_glb(name, glb, visible=True, cast_shadow=False, receive_shadow=self.receive_shadow)
-                if replacing:
-                    self._tokens -= 1.0
-                    tile.node.replaced_at = now
-                    tile.node.successor_mark = self.sync.mark() if self.sync is not None else 0.0
-                    self._retiring.append(tile.node)
-                tile.node, tile.sent, tile.sent_at = _Node(name, handle), crop, now
-                sent += 1
-                size += len(glb)
+            result = self._publish(rgb, now)
+            self._deliver(now)
             self.stats["updates"] += 1
-            self.stats["tiles_sent"] += sent
-            self.stats["bytes"] += size
-            self.stats["tiles_deferred"] += deferred
+            for key, value in result.items():
+                self.stats[key] += value
             self.stats["python_s"] += time.perf_counter() - start
-        return {"tiles_sent": sent, "bytes": size, "tiles_deferred": deferred}
+        return result
 
     def close(self) -> None:
-        """Remove every node of this stream from the scene. Later updates do nothing."""
+        """Remove every node of this stream from every browser's scene. Later updates do nothing."""
         with self._lock:
             if self._closed:
                 return
             self._closed = True
             if self.sync is not None:
                 self.sync.close()
-            try:
-                self._root.remove()  # and the tile nodes below it
-            except Exception:  # the server may be stopped already
-                pass
-            self._retiring.clear()
-            for tile in self._tiles:
-                tile.node, tile.sent = None, None
+            for viewer in self._viewers.values():
+                viewer.close()
+            self._viewers.clear()
 
     # --- internals --------------------------------------------------------------------------
     def _layout(self, shape) -> None:
-        """Crop boxes and GLB geometry for a texture of this (H, W); every tile is sent again."""
+        """Crop boxes and GLB geometry for a texture of this (H, W); every tile is published and sent again."""
         self._shape = tuple(shape)
         for tile in self._tiles:
             tile.geometry = _TileGeometry(tile.positions, tile.uv, tile.faces, tile.morph_ids, tile.morph_delta,
                                           self._shape, _MARGIN_TEXELS, self.roughness)
-            tile.sent = None
+            tile.sent, tile.glb, tile.version = None, None, -1
+
+    def _publish(self, rgb: np.ndarray, now: float) -> dict:
+        """Encode the changed tiles, most urgent first, within the token bucket (a tile's first version is free)."""
+        self._refill(now)
+        changed, deferred = self._changed_by_priority(rgb, now)
+        sent = size = 0
+        for tile in changed:
+            first = tile.sent is None
+            if not first and self._tokens < 1.0:
+                deferred += 1
+                continue
+            crop = np.array(tile.geometry.crop(rgb))  # a copy: the caller may reuse its buffer
+            tile.glb = tile.geometry.glb(*self._encode(crop))
+            tile.sent, tile.sent_at, tile.version = crop, now, self._publications
+            self._publications += 1
+            if not first:
+                self._tokens -= 1.0
+            sent += 1
+            size += len(tile.glb)
+        return {"tiles_sent": sent, "bytes": size, "tiles_deferred": deferred}
+
+    def _deliver(self, now: float) -> None:
+        """Follow the browsers that came and left, then per browser: remove its confirmed replaced nodes and send it
+        the tiles it lacks."""
+        clients = self.server.get_clients()
+        for client_id in [c for c in self._viewers if c not in clients]:
+            del self._viewers[client_id]  # its nodes went with its connection
+        for client_id, client in clients.items():
+            viewer = self._viewers.get(client_id)
+            if viewer is None:
+                viewer = self._viewers[client_id] = _Viewer(client, self.name, len(self._tiles),
+                                                            len(self._tiles) + self.max_pool, self.receive_shadow)
+            applied, confirmed = self.sync.positions(client_id) if self.sync is not None else (float("inf"),) * 2
+            removed, unconfirmed = viewer.remove_retired(now, confirmed, self.hide_after_s, self.max_hide_s)
+            self.stats["removed"] += removed
+            self.stats["removed_unconfirmed"] += unconfirmed
+            self.stats["tiles_delivered"] += viewer.show(self._tiles, now, applied, self._next_mark)
+
+    def _next_mark(self) -> float:
+        """Count one more tile message queued (after it is queued: a ClientSync request that reads the count later
+        is queued after it)."""
+        self._queued += 1
+        return float(self._queued)
 
     def _changed_by_priority(self, rgb: np.ndarray, now: float) -> tuple[list[_Tile], int]:
-        """Tiles to send, most urgent first: never-sent tiles, then by largest texel change (colour levels) times
-        (1 + seconds waited); and the number of tiles whose change (below min_change levels) waits for settle_s since
-        the tile's last send."""
+        """Tiles to publish, most urgent first: never-published tiles, then by largest texel change (colour levels)
+        times (1 + seconds waited); and the number of tiles whose change (below min_change levels) waits for settle_s
+        since the tile's last publication."""
         scored, settling = [], 0
         for tile in self._tiles:
             if tile.sent is None:
@@ -364,21 +512,6 @@ class TextureStream:
         image.save(buffer, format="JPEG", quality=90, subsampling=0)
         return buffer.getvalue(), "image/jpeg"
 
-    def _remove_retired(self, now: float) -> None:
-        """Remove replaced nodes whose delay has passed and whose successor every browser shows; their names go back
-        to the pool. Oldest first: both conditions hold for a prefix of the list."""
-        confirmed = self.sync.confirmed() if self.sync is not None and self._retiring else float("inf")
-        while self._retiring and self._retiring[0].replaced_at + self.hide_after_s <= now:
-            node = self._retiring[0]
-            if confirmed < node.successor_mark:
-                if now < node.replaced_at + self.max_hide_s:
-                    break
-                self.stats["removed_unconfirmed"] += 1
-            self._retiring.pop(0)
-            node.handle.remove()
-            self.stats["removed"] += 1
-            self._free.append(node.name)
-
     def _refill(self, now: float) -> None:
         """Token bucket: max_tiles_per_s tokens a second; at most half a second's worth (and one tile) saved up."""
         if self.max_tiles_per_s == float("inf"):
@@ -386,14 +519,6 @@ class TextureStream:
         elif self._tokens_at is not None:
             self._tokens = min(self._burst, self._tokens + (now - self._tokens_at) * self.max_tiles_per_s)
         self._tokens_at = now
-
-    def _take_name(self) -> str | None:
-        if self._free:
-            return self._free.pop()
-        if len(self._names) >= self._max_nodes:
-            return None
-        self._names.append(f"{self.name}/n{len(self._names):04d}")
-        return self._names[-1]
 
 
 def camera_for(surface, fov_deg: float = 50.0, aspect: float = 16 / 9, fill: float = 0.9, up=(0.0, 0.0, 1.0)):

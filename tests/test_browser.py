@@ -351,26 +351,46 @@ def _bumpy_patch(cells: int = 24):
 
 
 class _Recorder:
-    """Wraps a real viser server's add_glb to keep what the stream sends."""
+    """Wraps the add_glb of the connected clients' scenes (the stream sends each browser its own tile nodes) to keep
+    what the stream sends."""
 
     def __init__(self, server):
         self.sent = []
-        original = server.scene.add_glb
+        for client in server.get_clients().values():
+            original = client.scene.add_glb
 
-        def add_glb(name, glb_data, **kwargs):
-            self.sent.append((name, glb_data))
-            return original(name, glb_data, **kwargs)
+            def add_glb(name, glb_data, _original=original, **kwargs):
+                self.sent.append((name, glb_data))
+                return _original(name, glb_data, **kwargs)
 
-        server.scene.add_glb = add_glb
+            client.scene.add_glb = add_glb
 
 
 @pytest.fixture
 def server():
+    """A viser server with one connected client (a raw websocket client that answers as a browser does)."""
     import viser
 
+    from tests.raw_client import RawClient
+
     instance = viser.ViserServer(host="127.0.0.1", port=browser.free_port(), verbose=False)
+    client = RawClient(instance.get_port())
+    deadline = time.monotonic() + 30
+    while not instance.get_clients() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert instance.get_clients(), "the raw client did not connect"
     yield instance
+    client.close()
     instance.stop()
+
+
+def _applied(server, stream, timeout_s: float = 10.0) -> None:
+    """Wait until every client has applied every tile node queued to it so far (a tile is replaced for a client only
+    once it has applied the tile's current node)."""
+    mark, deadline = stream.sync.mark(), time.monotonic() + timeout_s
+    while not all(stream.sync.positions(client_id)[0] >= mark for client_id in server.get_clients()):
+        assert time.monotonic() < deadline, "the client did not apply its tiles"
+        time.sleep(0.02)
 
 
 def _glb_parts(glb: bytes):
@@ -404,11 +424,15 @@ def test_stream_sends_only_changed_tiles_and_removes_replaced_nodes_later(server
     first = stream.update(image)
     assert first["tiles_sent"] == 16 and first["bytes"] == sum(len(glb) for _, glb in recorder.sent)
     assert stream.update(image)["tiles_sent"] == 0
+    _applied(server, stream)
     image[40:44, 10:14] = 255  # inside one tile, far from its borders
     assert stream.update(image)["tiles_sent"] == 1
     assert stream.node_count == 17  # the replaced node stays under the new one for now
     time.sleep(0.35)
-    stream.update(image)
+    deadline = time.monotonic() + 10  # and goes once the client confirmed its successor (a few 0.2 s round trips)
+    while stream.node_count > 16 and time.monotonic() < deadline:
+        time.sleep(0.05)
+        stream.update(image)
     assert stream.node_count == 16
     image[40:44, 10:14] = 0
     stream.update(image)
@@ -428,6 +452,7 @@ def test_stream_rate_limit_defers_changed_tiles_and_sends_their_newest_crop(serv
     stream = TextureStream(server, _bumpy_patch(), tiles=4, max_tiles_per_s=10.0)
     image = np.zeros((64, 64, 3), np.uint8)
     stream.update(image)  # the first texture goes whole, whatever the limit
+    _applied(server, stream)
     sent, deferred, started = 0, 0, time.monotonic()
     for value in range(1, 30):
         image[:] = value  # every tile changes on every update
@@ -436,19 +461,24 @@ def test_stream_rate_limit_defers_changed_tiles_and_sends_their_newest_crop(serv
         deferred += result["tiles_deferred"]
         time.sleep(0.02)
     assert deferred > 0 and sent <= 10.0 * (time.monotonic() - started) + 6  # the rate, plus half a second's burst
-    deadline = time.monotonic() + 10
+    newest = {}
+
+    def every_tile_newest():
+        newest.clear()
+        for name, glb in recorder.sent[16:]:
+            document, binary = _glb_parts(glb)
+            view = document["bufferViews"][document["images"][0]["bufferView"]]
+            crop = np.asarray(Image.open(io.BytesIO(binary[view["byteOffset"]:view["byteOffset"] + view["byteLength"]])))
+            newest[document["accessors"][0]["min"][0], document["accessors"][0]["min"][1]] = crop
+        return len(newest) == 16 and all((crop == 29).all() for crop in newest.values())
+
+    deadline = time.monotonic() + 20
     while time.monotonic() < deadline:  # nothing changes any more: the deferred tiles catch up
-        result = stream.update(image)
-        if result["tiles_sent"] == 0 and result["tiles_deferred"] == 0:
+        stream.update(image)
+        if every_tile_newest():
             break
         time.sleep(0.1)
-    newest = {}
-    for name, glb in recorder.sent[16:]:
-        document, binary = _glb_parts(glb)
-        view = document["bufferViews"][document["images"][0]["bufferView"]]
-        crop = np.asarray(Image.open(io.BytesIO(binary[view["byteOffset"]:view["byteOffset"] + view["byteLength"]])))
-        newest[document["accessors"][0]["min"][0], document["accessors"][0]["min"][1]] = crop
-    assert len(newest) == 16 and all((crop == 29).all() for crop in newest.values()), "every tile ends with the newest texture"
+    assert every_tile_newest(), "every tile ends with the newest texture"
     stream.close()
 
 
@@ -471,6 +501,7 @@ def test_stream_sends_the_largest_change_first_and_lets_faint_changes_settle(ser
     stream = TextureStream(server, _bumpy_patch(), tiles=4, max_tiles_per_s=2.0, settle_s=1.0)  # one token per 0.5 s
     image = np.full((64, 64, 3), 120, np.uint8)
     stream.update(image)
+    _applied(server, stream)
     image[3:13, 3:13] = 130     # inside the top-left tile only (crops overlap by 2 texels): a change of 10 levels
     image[40:44, 40:44] = 250   # a fresh burn inside another tile
     first = stream.update(image)
@@ -481,8 +512,10 @@ def test_stream_sends_the_largest_change_first_and_lets_faint_changes_settle(ser
     time.sleep(0.6)
     image[20:28, 20:28] = 140   # a third tile changes and goes...
     assert stream.update(image)["tiles_sent"] == 1
+    sent_at = time.monotonic()
     image[20:28, 20:28] = 141   # ...and right after, by one level more
-    time.sleep(0.6)  # a token is back, settle_s (since the tile's last send) not over yet
+    _applied(server, stream)
+    time.sleep(max(0.0, sent_at + 0.6 - time.monotonic()))  # a token is back, settle_s (since the tile's last send) not over yet
     assert stream.update(image) == {"tiles_sent": 0, "bytes": 0, "tiles_deferred": 1}, "a faint change waits to settle"
     time.sleep(0.5)
     assert stream.update(image)["tiles_sent"] == 1 and (_sent_image(recorder.sent[-1][1]) == 141).any()

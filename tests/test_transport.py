@@ -1,0 +1,238 @@
+"""What reaches the lab over viser's websocket from clients that behave as any web page can (tests.raw_client):
+values are not checked by viser, a foreign web page is refused (lab.origin), and a client that never answers or stops
+reading slows only itself (lab.stream, lab.client_sync)."""
+from __future__ import annotations
+
+import math
+import threading
+import time
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from tests import browser
+from tests.helpers import plane_mesh
+from tests.raw_client import RawClient, pipelined_connection
+
+
+@pytest.fixture
+def server():
+    import viser
+
+    instance = viser.ViserServer(host="127.0.0.1", port=browser.free_port(), verbose=False)
+    yield instance
+    instance.stop()
+
+
+def _wait(predicate, timeout_s: float = 30.0, what: str = "") -> None:
+    deadline = time.monotonic() + timeout_s
+    while not predicate():
+        assert time.monotonic() < deadline, f"{what or 'the condition'} not met in {timeout_s} s"
+        time.sleep(0.02)
+
+
+def _connect(server, **kwargs) -> tuple[RawClient, int]:
+    """A raw client and its id on the server, once viser counts it as connected."""
+    before = set(server.get_clients())
+    client = RawClient(server.get_port(), **kwargs)
+    _wait(lambda: set(server.get_clients()) - before, what="the client connecting")
+    return client, (set(server.get_clients()) - before).pop()
+
+
+class _Inputs:
+    """A dropdown, a float slider, a button, transform controls and a scene click callback; keeps every value that
+    reaches a callback, with the id of the client it came from."""
+
+    def __init__(self, server):
+        self.seen: list[tuple] = []
+        self._lock = threading.Lock()
+        dropdown = server.gui.add_dropdown("Scene", options=("liver", "kidney"))
+        dropdown.on_update(lambda event: self._keep("dropdown", event.client_id, event.target.value))
+        slider = server.gui.add_slider("Rate", min=0.0, max=1.0, step=0.01, initial_value=0.5)
+        slider.on_update(lambda event: self._keep("slider", event.client_id, event.target.value))
+        server.gui.add_button("Reset").on_click(lambda event: self._keep("button", event.client_id, True))
+        gizmo = server.scene.add_transform_controls("/tool")
+        gizmo.on_update(lambda event: self._keep("gizmo", event.client_id, tuple(event.target.wxyz) + tuple(event.target.position)))
+        server.scene.on_click()(lambda event: self._keep("click", event.client_id, tuple(event.ray_origin) + tuple(event.ray_direction)))
+
+    def _keep(self, *entry) -> None:
+        with self._lock:
+            self.seen.append(entry)
+
+    def values(self, kind: str, client_id: int | None = None) -> list:
+        with self._lock:
+            return [value for k, c, value in self.seen if k == kind and client_id in (None, c)]
+
+
+def _same(a, b) -> bool:
+    """Equal, NaN equal to NaN, element by element for tuples."""
+    if isinstance(a, tuple):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
+    if isinstance(a, float) and math.isnan(a):
+        return isinstance(b, float) and math.isnan(b)
+    return a == b
+
+
+def test_viser_hands_whatever_a_client_sends_to_the_callbacks(server):
+    """Documents what the lab's callbacks must check themselves: viser passes on a dropdown value outside its options,
+    NaN and out-of-range slider values, and NaN or infinite poses and rays, exactly as sent."""
+    inputs = _Inputs(server)
+    client, client_id = _connect(server)
+    nan, inf = float("nan"), float("inf")
+    assert client.wait_for_gui("Scene")["props"]["options"] == ["liver", "kidney"]
+    assert client.wait_for_gui("Rate")["props"]["max"] == 1.0
+    client.set_gui_value("Scene", "../../etc/passwd")
+    client.set_gui_value("Rate", nan)
+    # callbacks read the handle's value when they run (in viser's thread pool): one value at a time
+    _wait(lambda: inputs.values("slider", client_id), what="the NaN reaching the slider's callback")
+    client.set_gui_value("Rate", 1e9)
+    client.click_button("Reset")
+    client.move_transform("/tool", (nan, 0.0, 0.0, 0.0), (1.0, -inf, 2.0))
+    client.click_scene((0.0, 0.0, nan), (0.0, 0.0, -1.0))
+    expected = {"dropdown": ["../../etc/passwd"], "slider": [nan, 1e9], "button": [True],
+                "click": [(0.0, 0.0, nan, 0.0, 0.0, -1.0)]}
+    pose = (nan, 0.0, 0.0, 0.0, 1.0, -inf, 2.0)  # wxyz, position
+
+    def arrived():
+        return all(len(inputs.values(kind, client_id)) >= len(values) for kind, values in expected.items()) \
+            and any(_same(value, pose) for value in inputs.values("gizmo", client_id))
+
+    _wait(arrived, what="every value reaching its callback")
+    for kind, values in expected.items():
+        assert _same(tuple(inputs.values(kind, client_id)), tuple(values)), (kind, inputs.values(kind, client_id))
+    client.close()
+
+
+def test_a_foreign_origin_is_disconnected_before_it_learns_or_changes_anything(server):
+    from lab.origin import refuse_foreign_origins
+
+    guard = refuse_foreign_origins(server)
+    port = server.get_port()
+    assert guard.allows(f"http://localhost:{port}") and guard.allows(f"http://127.0.0.1:{port}/") and guard.allows(None)
+    assert not guard.allows(f"http://localhost:{port + 1}") and not guard.allows("null")
+    assert not guard.allows(f"http://127.0.0.1.evil.example:{port}")
+    inputs = _Inputs(server)
+    own, own_id = _connect(server, origin=f"http://127.0.0.1:{port}")
+    uuid = own.wait_for_gui("Rate")["uuid"]
+    camera = {"type": "ViewerCameraMessage", "wxyz": [1.0, 0.0, 0.0, 0.0], "position": [0.0, 0.0, 1.0], "fov": 0.9,
+              "near": 0.01, "far": 100.0, "image_height": 600, "image_width": 960, "look_at": [0.0, 0.0, 0.0],
+              "up_direction": [0.0, 0.0, 1.0]}
+    # the fastest a page can be: its messages in the same TCP write as the upgrade request
+    attack = pipelined_connection(port, "http://evil.example", [camera] + [
+        {"type": "GuiUpdateMessage", "uuid": uuid, "updates": {"value": 0.25 + 0.001 * i}} for i in range(20)])
+    assert attack == {"status": 101, "close_code": 1008, "frames": 0}, "the scene or GUI went to a foreign page"
+    evil = RawClient(port, origin="http://evil.example")
+    _wait(lambda: not evil.connected, what="the foreign client being disconnected")
+    assert evil.close_code == 1008 and not evil.counts and not evil.send_gui_update(uuid, 0.75)
+    own.set_gui_value("Rate", 0.125)
+    script, script_id = _connect(server)  # no Origin: not a web page
+    script.set_gui_value("Rate", 0.375)
+    _wait(lambda: inputs.values("slider") == [0.125, 0.375], what="the own page's and the script's values arriving")
+    assert inputs.values("slider", own_id) == [0.125] and set(server.get_clients()) == {own_id, script_id}
+    assert guard.refused == 2 and guard.last_refused == "http://evil.example"
+    own.close()
+    script.close()
+
+
+@pytest.mark.skipif(not browser.have_chromium(), reason=f"needs the Debian chromium package at {browser.CHROMIUM}")
+def test_a_real_page_from_the_server_itself_still_connects(server):
+    from playwright.sync_api import sync_playwright
+
+    from lab.origin import refuse_foreign_origins
+
+    guard = refuse_foreign_origins(server)
+    with sync_playwright() as playwright:
+        chromium = browser.launch(playwright)
+        try:
+            page = chromium.new_page()
+            page.goto(f"http://127.0.0.1:{server.get_port()}/", wait_until="domcontentloaded")
+            _wait(lambda: server.get_clients(), timeout_s=120, what="the page connecting")
+        finally:
+            chromium.close()
+    assert guard.refused == 0
+
+
+# --- a silent or stalled client and the texture stream --------------------------------------
+
+TILES, POOL, HIDE_S, RATE = 4, 16, 0.5, 16.0   # 16 tiles, 16 spare node names per browser, 16 tile versions/s
+UPDATES, PERIOD_S = 40, 0.05                     # every update changes every tile
+
+
+def _patch():
+    """A bumpy 60 x 40 mm patch with UVs over [0, 1]^2, as TextureStream wants it."""
+    mesh = plane_mesh(60.0, 40.0, cells=16)
+    vertices = np.asarray(mesh.vertices, np.float64).copy()
+    vertices[:, 2] = 3.0 * np.sin(vertices[:, 0] / 7.0) * np.cos(vertices[:, 1] / 5.0)
+    return SimpleNamespace(vertices_mm=vertices.astype(np.float32), faces=np.asarray(mesh.faces, np.int32),
+                           uv=np.asarray(mesh.visual.uv, np.float32))
+
+
+def _stream_run(server, other: str | None) -> dict:
+    """Tiles a normal client receives over UPDATES updates while `other` ("silent": reads, never answers the sync
+    requests; "stalled": stops reading after its first tiles; None: no one) is connected too."""
+    from lab.stream import TextureStream
+
+    normal, normal_id = _connect(server)
+    extra, extra_id = _connect(server, answer_requests=other != "silent") if other else (None, None)
+    stream = TextureStream(server, _patch(), tiles=TILES, hide_after_s=HIDE_S, max_pool=POOL, max_tiles_per_s=RATE)
+    try:
+        image = np.zeros((64, 64, 3), np.uint8)
+        stream.update(image)
+        for client in (normal, extra) if extra else (normal,):
+            client.wait_for(lambda c=client: len(c.glbs) >= TILES * TILES)
+        if other == "stalled":
+            extra.stall()
+        received_before, published_before, start = len(normal.glbs), stream.stats["tiles_sent"], time.monotonic()
+        for index in range(1, UPDATES + 1):
+            image[:] = (index * 16) % 256
+            stream.update(image)
+            time.sleep(max(0.0, start + index * PERIOD_S - time.monotonic()))
+        queued = stream.client_stats(normal_id)["tiles_sent"]
+        normal.wait_for(lambda: len(normal.glbs) >= queued, timeout_s=10)
+        return {"received": len(normal.glbs) - received_before, "published": stream.stats["tiles_sent"] - published_before,
+                "other": stream.client_stats(extra_id) if extra else None}
+    finally:
+        stream.close()
+        for client in (normal, extra):
+            if client is not None:
+                client.close()
+        _wait(lambda: not server.get_clients(), what="the clients leaving")
+
+
+def test_a_client_that_never_answers_or_stops_reading_slows_only_itself(server):
+    """With one stream for every browser, a node could be removed only once every browser had confirmed its
+    successor: a silent client held each removal for 15 s and dried up the shared node pool (the normal client got
+    about a fifth of its rate). Now each browser has its own nodes and confirmations."""
+    alone = _stream_run(server, None)
+    assert alone["received"] >= 0.8 * alone["published"] > 0, alone
+    for other in ("silent", "stalled"):
+        run = _stream_run(server, other)
+        assert run["received"] >= 0.8 * alone["received"], (other, run, alone)
+        # what the server queued for the other client is bounded by its nodes: its tiles and its spare names
+        assert run["other"]["tiles_sent"] <= TILES * TILES + POOL and run["other"]["removed"] == 0, (other, run)
+
+
+def test_a_new_client_gets_every_tile_and_one_that_leaves_takes_its_nodes(server):
+    from lab.stream import TextureStream
+
+    first, first_id = _connect(server)
+    stream = TextureStream(server, _patch(), tiles=TILES)
+    try:
+        image = np.full((64, 64, 3), 100, np.uint8)
+        stream.update(image)
+        image[40:44, 10:14] = 200
+        stream.update(image)  # one tile replaced for the first client
+        second, second_id = _connect(server)
+        stream.update(image)
+        second.wait_for(lambda: len(second.glbs) >= TILES * TILES)
+        assert len(second.glbs) == TILES * TILES and stream.client_stats(second_id)["nodes"] == TILES * TILES
+        assert stream.node_count == 2 * TILES * TILES + 1  # the first client's replaced node is still there
+        second.close()
+        _wait(lambda: second_id not in server.get_clients(), what="the second client leaving")
+        stream.update(image)
+        assert stream.node_count == TILES * TILES + 1 and stream.client_stats(second_id)["nodes"] == 0
+        assert first.wait_for(lambda: len(first.glbs) == TILES * TILES + 1)
+    finally:
+        stream.close()
+        first.close()

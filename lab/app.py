@@ -1,18 +1,19 @@
-"""The browser lab: a viser server showing the textured tissue, draggable instruments and bleed
+"""The browser lab: a viser view of a lab session (lab.session): the textured tissue, draggable instruments and bleed
 points, sliders for every parameter, run controls and live stats.
 
-Threads: viser runs GUI callbacks concurrently in a pool; they never touch the simulation. They put
-small functions on `commands`, and the one simulation loop (`LabApp.run`, on the main thread: Taichi
-compiles a rebuilt scene only on the thread that started it) runs them between steps.
+Everything a browser sends is untrusted (viser checks no dropdown value against its options and no number for NaN):
+callbacks hand each value to the session, which checks it against what it offered and refuses what it did not; a
+refused value is put back in the browser and the reason shown. Callbacks of values the server set itself
+(event.client is None) are ignored, so the view never echoes its own updates back as user input.
 
-Parameters the models read every step change live. The others (texture size, particle pool,
-instrument shapes, quality preset) are kept as scene overrides (the `--set` syntax of sims.config)
-that every rebuild applies; a burst of changes (a slider being dragged) waits for REBUILD_DELAY_S of
-quiet and then rebuilds once. Live changes are kept as overrides too, so a rebuild keeps them.
+Threads: viser runs GUI callbacks concurrently in a pool; they only call the session's command methods. The
+simulation loop (`LabApp.run`, on the main thread: Taichi compiles a rebuilt scene only on the thread that started
+it) ticks the session and redraws what changed.
 """
-import json
+from __future__ import annotations
+
 import math
-import queue
+import sys
 import threading
 import time
 import traceback
@@ -23,44 +24,20 @@ import trimesh
 import viser
 import viser.transforms as vtf
 
+from lab.session import MAX_BLEED_POINTS, QUALITY, SPEED_RANGE, LabSession
 from lab.stream import TextureStream
-from sims import backend, params
-from sims.config import REPO_ROOT, ConfigError, load_scene_config, parse_override
-from sims.instruments import Instrument, Pose, local_frame
-from sims.scene import Scene
+from sims import params
+from sims.instruments import local_frame
+from sims.scene import Refused, finite_vector
 
 FRAME_INTERVAL_S = 1.0 / 30.0       # texture updates at most this often
 STATS_INTERVAL_S = 0.5
 PLOT_SECONDS = 60.0
-REBUILD_DELAY_S = 0.5               # a rebuild waits until its sliders have been still this long (one rebuild per drag)
-QUALITY = {  # name: scene overrides (texture texels, fluid substeps)
-    "scene file": {},
-    "fast": {"texture_size": 256, "bleeding.substeps": 1},
-    "balanced": {"texture_size": 512, "bleeding.substeps": 2},
-    "accurate": {"texture_size": 1024, "bleeding.substeps": 4},
-}
-QUALITY_KEYS = ("texture_size", "bleeding.substeps")
-# Slider folders: (config group, "" for top-level keys; folder; specs; model it needs; names that need a rebuild).
-# duration_s is left out: it only ends headless runs.
-SLIDER_GROUPS = (
-    ("", "Simulation", {name: spec for name, spec in params.SIMULATION.items() if name != "duration_s"}, None, {"texture_size"}),
-    ("tissue", "Tissue", params.TISSUE, "cautery", set()),
-    ("cautery", "Cautery", params.CAUTERY, "cautery", set()),
-    ("bleeding", "Bleeding", params.BLEEDING, "bleeding", {"capacity"}),
-)
-SHAPE_SLIDERS = {"ball": ("radius_mm",), "capsule": ("radius_mm", "length_mm"), "spatula": ("width_mm", "thickness_mm", "length_mm"), "mesh": ("sdf_resolution",)}
 REBUILD_HINT = "Changing it restarts the scene (rebuilt with the new value)."
-SPARE_SUCTION = {"radius_mm": 4.0, "rate_ml_s": 0.2}
 TOOL_COLOR, HOT_COLOR = (170, 175, 185), (255, 140, 40)
 ENVIRONMENT_INTENSITY = 0.4
-
-
-def bounded(handle, low: float, high: float) -> float:
-    """The handle's value kept inside [low, high]; a value typed outside is put back in the browser."""
-    value = min(max(float(handle.value), low), high)
-    if value != handle.value:
-        handle.value = value
-    return value
+LOOPBACK_HOSTS = ("127.0.0.1", "localhost", "::1")
+MODEL_FOLDERS = (("", "Simulation"), ("tissue", "Tissue"), ("cautery", "Cautery"), ("bleeding", "Bleeding"))
 
 
 def slider_step(spec: params.ParamSpec) -> float:
@@ -72,35 +49,6 @@ def slider_step(spec: params.ParamSpec) -> float:
 
 def slider_label(name: str, spec: params.ParamSpec) -> str:
     return f"{name} ({spec.unit})" if spec.unit else name
-
-
-def yaml_value(value) -> str:
-    """`value` as YAML flow text that reads back as the same value (YAML 1.1 reads 1e-05 as text: 1.0e-05)."""
-    if isinstance(value, np.generic):
-        value = value.item()
-    if isinstance(value, dict):
-        return "{" + ", ".join(f"{json.dumps(str(key))}: {yaml_value(item)}" for key, item in value.items()) + "}"
-    if isinstance(value, (list, tuple)):
-        return "[" + ", ".join(yaml_value(item) for item in value) + "]"
-    if isinstance(value, float):
-        if not math.isfinite(value):
-            raise ValueError(f"not a finite number: {value}")
-        mantissa, mark, exponent = repr(value).partition("e")
-        if "." not in mantissa:
-            mantissa += ".0"
-        return mantissa + mark + (exponent if not exponent or exponent[0] in "+-" else "+" + exponent)
-    if isinstance(value, Path):
-        value = str(value)
-    return json.dumps(value)
-
-
-def override_texts(overrides: dict) -> list[str]:
-    """{dotted.key: value} -> ["dotted.key=value", ...] for sims.config.load_scene_config."""
-    return [f"{key}={yaml_value(value)}" for key, value in overrides.items()]
-
-
-def scene_files() -> list[str]:
-    return sorted(str(path.relative_to(REPO_ROOT)) for path in (REPO_ROOT / "scenes").glob("*.yaml"))
 
 
 def instrument_mesh(shape: dict) -> trimesh.Trimesh:
@@ -117,17 +65,34 @@ def instrument_mesh(shape: dict) -> trimesh.Trimesh:
     return trimesh.load(str(shape["file"]), force="mesh")
 
 
-def pose_wxyz(pose: Pose) -> np.ndarray:
-    return vtf.SO3.from_matrix(local_frame(pose.direction, pose.roll_deg).T).wxyz
+def pose_wxyz(direction, roll_deg: float) -> np.ndarray:
+    return vtf.SO3.from_matrix(local_frame(direction, roll_deg).T).wxyz
 
 
-def pose_from_transform(wxyz, position, old: Pose) -> Pose:
-    """Direction and roll from a gizmo rotation (local z points back along the shaft)."""
-    world_from_local = vtf.SO3(np.asarray(wxyz)).as_matrix()
+def placement_from_transform(wxyz, position) -> tuple[np.ndarray, np.ndarray, float]:
+    """(position, direction, roll_deg) of a gizmo pose (local z points back along the shaft); Refused unless finite."""
+    position = finite_vector(position, 3, "gizmo position")
+    quaternion = finite_vector(wxyz, 4, "gizmo rotation")
+    if np.linalg.norm(quaternion) < 1e-6:
+        raise Refused("gizmo rotation: not a rotation (zero quaternion)")
+    world_from_local = vtf.SO3(quaternion / np.linalg.norm(quaternion)).as_matrix()
     direction = -world_from_local[:, 2]
     zero = local_frame(direction, 0.0)
     roll = math.degrees(math.atan2(world_from_local[:, 0] @ zero[1], world_from_local[:, 0] @ zero[0]))
-    return Pose(np.asarray(position, np.float64), direction, roll, old.energized, old.tip_temperature_c)
+    return position, direction, roll
+
+
+def initial_view(surface) -> tuple[np.ndarray, np.ndarray]:
+    """(camera position, look-at point), mm: the tissue seen from the front and above, as every browser starts."""
+    lo, hi = surface.vertices_mm.min(axis=0), surface.vertices_mm.max(axis=0)
+    centre, size = (lo + hi) / 2, float(np.max(hi - lo))
+    return centre + np.array([0.0, -0.45, 1.0]) * 0.95 * size, centre
+
+
+def from_browser(event) -> bool:
+    """True for a change a browser made; False for the callback viser runs when the server sets a value itself, and
+    for a gizmo's drag start and end (they carry no new pose: only moving a gizmo takes a tool over)."""
+    return getattr(event, "client", None) is not None and getattr(event, "phase", "update") == "update"
 
 
 class UntilFailed(Exception):
@@ -135,158 +100,254 @@ class UntilFailed(Exception):
 
 
 class LabApp:
-    """One scene served to every connected browser. Build it and call `run` on the thread that started Taichi."""
+    """A LabSession served to every connected browser. Build it and call `run` on the thread that started Taichi."""
 
-    def __init__(self, scene_path, host: str = "127.0.0.1", port: int = 8080, arch: str = "auto", overrides=()):
-        """overrides: `dotted.key=value` texts (as `--set`), applied on every rebuild of this scene."""
+    def __init__(self, scene_path, host: str = "127.0.0.1", port: int = 8080, arch: str = "auto", overrides=(),
+                 wait_for_viewer: bool = False, allowed_origins=()):
+        """overrides: `dotted.key=value` texts (as `--set`), applied on every rebuild of this scene. wait_for_viewer:
+        the scene waits at t = 0 until the first browser connects. allowed_origins: web origins besides the server's
+        own that may connect (e.g. a reverse proxy's, "https://lab.example.org")."""
+        from lab.origin import refuse_foreign_origins
+
         self.server = viser.ViserServer(host=host, port=port, verbose=False)
+        refuse_foreign_origins(self.server, allowed_origins)
         self.simple_lighting = False
+        self.lighting_checkbox = None
         self.set_simple_lighting(False)
-        self.arch = arch
-        self.commands: queue.Queue = queue.Queue()
-        self.running, self.speed, self.single_steps = True, 1.0, 0
-        self.quality = "scene file"
-        self.overrides: dict = {}            # dotted scene key -> value, applied on every (re)build
-        for text in overrides:
-            parts, value = parse_override(text)
-            self.overrides[".".join(parts)] = value
-        self.added_points: list[dict] = []   # items of bleed points added in the browser (re-added after a rebuild)
-        self.removed_points: set[str] = set()  # scene bleed points removed in the browser
-        self.spare_suction = dict(SPARE_SUCTION)
-        self.builds = 0                      # scene builds so far (1 after start-up)
-        self.notice = ""
-        self._rebuild_at: float | None = None
-        self.stop_event = threading.Event()
         self.stats = {"steps_per_s": 0.0, "updates_per_s": 0.0, "bytes_per_s": 0.0}
         self.history: list[tuple] = []
-        self.scene = None
-        self.server.on_client_connect(self._frame_camera)
-        self._load(Path(scene_path))
+        self._notifications: list = []
+        self.stop_event = threading.Event()
+        self.stream = None
+        self.session = LabSession(scene_path, arch, overrides, wait_for_viewer=wait_for_viewer, on_build=self._on_build)
+        self.server.on_client_connect(self._client_connected)
+        self._show_scene()
+
+    @property
+    def scene(self):
+        return self.session.scene
 
     # --- scene lifetime ---------------------------------------------------------------------
-    def _load(self, path: Path) -> None:
-        """Build the scene with the overrides, the texture stream and the GUI (simulation thread or start-up only).
-        A rebuild the overrides make invalid keeps the scene it had and says why; a scene file that fails to build
-        (a mesh that does not load) brings the previous scene back, restarted, and says why.
+    def _on_build(self, stage: str, name: str, seconds: float) -> None:
+        """A notification in every browser while a scene builds (it takes seconds), and how long it took."""
+        for handle in self._notifications:
+            handle.remove()
+        self._notifications = []
+        for client in self.server.get_clients().values():
+            if stage == "start":
+                self._notifications.append(client.add_notification("Building the scene", f"{name}: meshes, texel maps and kernels...",
+                                                                   loading=True, with_close_button=False))
+            else:
+                self._notifications.append(client.add_notification("Scene ready", f"{name} built in {seconds:.1f} s",
+                                                                   auto_close_seconds=4.0))
 
-        Every build after the first starts a fresh Taichi runtime: Taichi frees no field of a dropped scene and
-        allows 512 field trees per runtime (a hemostasis build makes 14), and a fresh runtime builds faster too."""
-        first_build = self.scene is None
-        try:
-            config = load_scene_config(path, override_texts(self.overrides))
-        except ConfigError as exc:
-            if first_build:
-                raise
-            self.overrides = dict(self._built_with)
-            self.notice = f"**not rebuilt: {exc}**"
-            return
-        notice = ""
-        if not first_build:
+    def _show_scene(self) -> None:
+        """Stream, tools, markers and GUI for the session's scene (after every build)."""
+        if self.stream is not None:
             self.stream.close()
-            self.scene = None
-            backend.shutdown()
-        try:
-            scene = Scene(config, self.arch)
-        except ConfigError as exc:
-            if first_build:
-                raise
-            path, self.overrides = self.scene_path, dict(self._built_with)
-            scene = Scene(load_scene_config(path, override_texts(self.overrides)), self.arch)
-            notice = f"**not switched: {exc}**"
-        self._built_with = dict(self.overrides)
-        self.scene_path, self.scene, self.notice = path, scene, notice
-        self.builds += 1
-        if scene.bleeding is not None:
-            scene.bleed_points = [point for point in scene.bleed_points if point.name not in self.removed_points]
-            self.added_points = [scene.add_bleed_point(item["name"], item["position_mm"], item["rate_ml_s"], item["radius_mm"]).item
-                                 for item in self.added_points]
-            if not any(tool.suction for tool in scene.instruments):
-                scene.instruments.append(self._spare_sucker())
         self.server.gui.reset()
         self.server.scene.reset()
         self.server.scene.set_up_direction("+z")
-        self.stream = TextureStream(self.server, scene.surface)
-        self.stream.update(scene.composite())
+        self.server.scene.remove_click_callback("all")
+        self.server.scene.on_click()(self._scene_clicked)  # always on: a click is only used while a point is armed
+        self.shown_builds = self.session.builds
+        self.stream = TextureStream(self.server, self.scene.surface)
+        self.stream.update(self.scene.composite())
         self.history.clear()
+        self._shown: dict = {}          # what the view last showed, by key: only changes are sent
+        self.tool_views: dict = {}      # tool name -> its handles
+        self.point_views: dict = {}     # bleed point name -> (marker gizmo, folder)
+        self.sliders: dict = {}         # parameter key -> slider handle
+        self.armed_click = False
+        for client in self.server.get_clients().values():
+            self._frame_camera(client)
         self._build_gui()
 
-    def _schedule_rebuild(self) -> None:
-        """Rebuild once REBUILD_DELAY_S passed without another change (simulation thread)."""
-        self._rebuild_at = time.monotonic() + REBUILD_DELAY_S
-
-    def _switch_scene(self, path: Path) -> None:
-        """Another scene: keeps the quality preset, forgets the changes made to this one."""
-        self.overrides = dict(QUALITY[self.quality])
-        self.added_points, self.removed_points = [], set()
-        self.spare_suction = dict(SPARE_SUCTION)
-        self._rebuild_at = None
-        self._load(path)
-
-    def _set_quality(self, name: str) -> None:
-        self.quality = name
-        for key in QUALITY_KEYS:
-            self.overrides.pop(key, None)
-        self.overrides.update(QUALITY[name])
-        self._schedule_rebuild()
-
-    def _spare_sucker(self) -> Instrument:
-        """A suction cannula parked above the tissue, for scenes that bleed without one."""
-        top = self.scene.surface.vertices_mm.max(axis=0)
-        shape = {"type": "capsule", "radius_mm": 1.5, "length_mm": 20.0, "width_mm": 1.0, "thickness_mm": 1.0, "file": None, "sdf_resolution": 8}
-        parked = Pose(np.array([top[0] - 5.0, top[1] - 5.0, top[2] + 10.0]), np.array([0.0, 0.0, -1.0]), 0.0, False, 20.0)
-        return Instrument("sucker", shape, parked, suction=self.spare_suction)
+    def _client_connected(self, client) -> None:
+        self._frame_camera(client)
+        self.session.viewer_joined()
 
     def _frame_camera(self, client) -> None:
-        lo, hi = self.scene.surface.vertices_mm.min(axis=0), self.scene.surface.vertices_mm.max(axis=0)
-        centre, size = (lo + hi) / 2, float(np.max(hi - lo))
-        client.camera.position = tuple(centre + np.array([0.0, -0.45, 1.0]) * 0.95 * size)
-        client.camera.look_at = tuple(centre)
+        position, look_at = initial_view(self.scene.surface)
+        client.camera.position = tuple(float(v) for v in position)
+        client.camera.look_at = tuple(float(v) for v in look_at)
 
     # --- GUI --------------------------------------------------------------------------------
     def _build_gui(self) -> None:
-        gui, scene = self.server.gui, self.scene
-        self.sliders = {}  # every parameter slider by its scene key (its label when it has none)
+        gui, session = self.server.gui, self.session
         with gui.add_folder("Run"):
-            pause = gui.add_button("Resume" if not self.running else "Pause")
+            self.pause_button = gui.add_button("Pause" if session.running else "Resume")
             step = gui.add_button("Single step")
-            reset = gui.add_button("Reset", hint="back to t = 0, with the current settings")
+            reset = gui.add_button("Reset", hint="back to t = 0 with the current settings; every tool back to its script")
+            self.replay_button = gui.add_button("Replay the script", hint="the scripted drill has ended: play it again from t = 0",
+                                                visible=False)
             reload = gui.add_button("Back to the scene file", hint="forgets every change but the quality preset; " + REBUILD_HINT)
-            speed = gui.add_slider("Speed (x real time)", 0.1, 4.0, 0.1, self.speed)
-            files = scene_files()
-            current = str(self.scene_path.resolve().relative_to(REPO_ROOT)) if self.scene_path.resolve().is_relative_to(REPO_ROOT) else str(self.scene_path)
-            chooser = gui.add_dropdown("Scene", files if current in files else [current, *files], initial_value=current,
+            speed = gui.add_slider("Speed (x real time)", *SPEED_RANGE, 0.1, session.speed)
+            chooser = gui.add_dropdown("Scene", session.scene_choices(), initial_value=session.scene_name_of(session.scene_path),
                                        hint="keeps the quality preset, forgets the other changes")
             lighting = gui.add_checkbox("Simple lighting", self.simple_lighting,
                                         hint="no environment light, no shadows: draws several times faster in a browser without a GPU")
-            quality = gui.add_dropdown("Quality", tuple(QUALITY), initial_value=self.quality,
+            quality = gui.add_dropdown("Quality", tuple(QUALITY), initial_value=session.quality,
                                        hint="fast: 256² texels, 1 fluid substep; balanced: 512², 2; accurate: 1024², 4; "
                                             "scene file: as the scene says. " + REBUILD_HINT)
+        self.lighting_checkbox, self.scene_dropdown, self.quality_dropdown = lighting, chooser, quality
+        self.pause_button.on_click(lambda event: self._act(event, lambda: self.set_running(not session.running)))
+        step.on_click(lambda event: self._act(event, session.single_step))
+        reset.on_click(lambda event: self._act(event, session.reset))
+        self.replay_button.on_click(lambda event: self._act(event, session.reset))
+        reload.on_click(lambda event: self._act(event, session.back_to_scene_file))
+        speed.on_update(lambda event: self._act(event, lambda: session.set_speed(speed.value), put_back=(speed, lambda: session.speed)))
+        lighting.on_update(lambda event: self._act(event, lambda: self.set_simple_lighting(bool(lighting.value))))
+        chooser.on_update(lambda event: self._act(event, lambda: self._choose(chooser, session.switch_scene),
+                                                  put_back=(chooser, lambda: session.scene_name_of(session.scene_path))))
+        quality.on_update(lambda event: self._act(event, lambda: self._choose(quality, session.set_quality),
+                                                  put_back=(quality, lambda: session.quality)))
 
-        self.pause_button = pause
-        self.lighting_checkbox = lighting
-        lighting.on_update(lambda _: self.set_simple_lighting(bool(lighting.value)))
-        pause.on_click(lambda _: self.set_running(not self.running))
-        step.on_click(lambda _: self.commands.put(lambda: setattr(self, "single_steps", self.single_steps + 1)))
-        reset.on_click(lambda _: self.commands.put(self.scene.reset))
-        reload.on_click(lambda _: self.commands.put(lambda: self._switch_scene(self.scene_path)))
-        speed.on_update(lambda _: setattr(self, "speed", bounded(speed, 0.1, 4.0)))
-        chooser.on_update(lambda _: self.commands.put(lambda path=REPO_ROOT / chooser.value: self._switch_scene(path)))
-        quality.on_update(lambda _: self.commands.put(lambda name=quality.value: self._set_quality(name)))
-        self.scene_dropdown, self.quality_dropdown = chooser, quality
-
-        self._build_sliders()
+        parameters = session.parameters()
+        for group, label in MODEL_FOLDERS:
+            keys = [key for key in parameters if (key.partition(".")[0] == group and "." in key) or (group == "" and "." not in key)]
+            if not keys:
+                continue
+            with gui.add_folder(label, expand_by_default=False):
+                for key in keys:
+                    self._slider(key, slider_label(key.rpartition(".")[2], parameters[key].spec))
+                defaults = gui.add_button(f"Reset {label.lower()} to defaults")
+                defaults.on_click(lambda event, g=group: self._act(event, lambda: session.reset_parameters(g)))
         self._build_instruments()
-        if scene.bleeding is not None:
-            self._build_bleeding_tools()
+        if self.scene.bleeding is not None:
+            with gui.add_folder("Bleed points") as folder:
+                add = gui.add_button("Add bleed point (then click the tissue)",
+                                     hint=f"the next click on the tissue adds one point; at most {MAX_BLEED_POINTS} points in a scene")
+                remove = gui.add_button("Remove last bleed point")
+            self.bleed_folder = folder
+            add.on_click(lambda event: self._act(event, lambda: setattr(self, "armed_click", True)))
+            remove.on_click(lambda event: self._act(event, session.remove_bleed_point))
         with gui.add_folder("Stats"):
             self.stats_text = gui.add_markdown("starting...")
             series = {0: viser.uplot.Series(label="t (s)"), 1: viser.uplot.Series(label="max T (C)", stroke="orange"),
                       2: viser.uplot.Series(label="blood (mm2)", stroke="red")}
-            self.plot_columns = [0] + ([1] if scene.cautery is not None else []) + ([2] if scene.bleeding is not None else [])
+            self.plot_columns = [0] + ([1] if self.scene.cautery is not None else []) + ([2] if self.scene.bleeding is not None else [])
             self.plot = gui.add_uplot(
                 data=tuple(np.zeros(1) for _ in self.plot_columns), series=tuple(series[column] for column in self.plot_columns),
                 title="over time", aspect=2.0, scales={"x": {"time": False}},
             )
+        self._sync_view()
+
+    def _act(self, event, action, put_back=None) -> None:
+        """Run a browser's action (GUI thread); a Refused one is shown, and put_back=(handle, value()) shows the value
+        in use again. Values the server set itself are ignored."""
+        if not from_browser(event):
+            return
+        try:
+            action()
+        except Refused as exc:
+            self.session.notice = f"refused: {exc}"
+            if put_back is not None:
+                handle, value = put_back
+                handle.value = value()
+
+    @staticmethod
+    def _choose(dropdown, choose) -> None:
+        """A dropdown value reaches the session only when it is one of the dropdown's options."""
+        if dropdown.value not in dropdown.options:
+            raise Refused(f"{dropdown.label}: {dropdown.value!r} is not one of the options")
+        choose(dropdown.value)
+
+    def _slider(self, key: str, label: str, hint_extra: str = ""):
+        """A slider for a session parameter; a change is checked by the session (NaN refused, clamped into range) and
+        the value in use is shown again when it differs."""
+        parameter = self.session.parameters()[key]
+        spec = parameter.spec
+        hint = spec.help + ("" if parameter.live else f". {REBUILD_HINT}") + hint_extra
+        handle = self.server.gui.add_slider(label, spec.min, spec.max, slider_step(spec), self.session.parameter_value(key), hint=hint)
+
+        def changed(event):
+            value = handle.value
+            if not from_browser(event):
+                return
+            try:
+                used = self.session.set_parameter(key, value)
+            except Refused as exc:
+                self.session.notice = f"refused: {exc}"
+                handle.value = self.session.parameter_value(key)
+                return
+            if used != value:
+                handle.value = used
+
+        handle.on_update(changed)
+        self.sliders[key] = handle
+        return handle
+
+    def _build_instruments(self) -> None:
+        gui, session = self.server.gui, self.session
+        parameters = session.parameters()
+        with gui.add_folder("Instruments"):
+            self.held_text = gui.add_markdown("")
+            for tool in self.scene.instruments:
+                with gui.add_folder(tool.name):
+                    view = {"tool": tool}
+                    view["distance"] = gui.add_markdown("")
+                    view["switch"] = gui.add_checkbox(f"{tool.name}: {'suction on' if tool.suction else 'energized'}",
+                                                      tool.pose_at(self.scene.time_s).energized)
+                    view["rest"] = gui.add_checkbox(f"{tool.name}: touch the tissue", tool.name in session.resting,
+                                                    hint="a tool moved by hand is lowered along its axis onto the tissue under it and "
+                                                         "stays in contact while dragged")
+                    view["rotate"] = gui.add_checkbox(f"{tool.name}: allow rotation", False, hint="show the gizmo's rotation rings")
+                    view["release"] = gui.add_button(f"{tool.name}: back to the script", hint="the tool follows its scripted path again",
+                                                     visible=False)
+                    for key in [key for key in parameters if key.startswith(f"instruments.{tool.name}.")]:
+                        name = key.removeprefix(f"instruments.{tool.name}.").replace(".", " ")
+                        self._slider(key, f"{tool.name}: {slider_label(name, parameters[key].spec)}")
+                name = tool.name
+                view["switch"].on_update(lambda event, n=name, h=view["switch"]: self._act(
+                    event, lambda: session.set_energized(n, bool(h.value))))
+                view["rest"].on_update(lambda event, n=name, h=view["rest"]: self._act(event, lambda: session.set_resting(n, bool(h.value))))
+                view["rotate"].on_update(lambda event, n=name: self._act(event, lambda: self._place_gizmo(n)))
+                view["release"].on_click(lambda event, n=name: self._act(event, lambda: session.release(n)))
+                self.tool_views[name] = view
+                self._place_gizmo(name)
+                body = instrument_mesh(tool.shape)
+                view["body"] = self.server.scene.add_mesh_simple(f"/tool_bodies/{name}", body.vertices.astype(np.float32),
+                                                                 body.faces.astype(np.uint32), color=TOOL_COLOR)
+
+    def _place_gizmo(self, name: str) -> None:
+        """The tool's gizmo (translation handles; rotation rings too when asked), at the tool's pose."""
+        view = self.tool_views[name]
+        if "gizmo" in view:
+            view["gizmo"].remove()
+        pose = view["tool"].pose_at(self.scene.time_s)
+        gizmo = self.server.scene.add_transform_controls(f"/tools/{name}", scale=8.0, position=tuple(pose.position_mm),
+                                                         wxyz=self._gizmo_wxyz(name, pose), disable_rotations=not view["rotate"].value)
+        view["gizmo"], view["gizmo_at"] = gizmo, None
+        gizmo.on_update(lambda event, n=name, g=gizmo: self._act(event, lambda: self._gizmo_moved(n, g), put_back=None))
+
+    def _gizmo_wxyz(self, name: str, pose) -> tuple:
+        """The gizmo turns with the tool while rotation is allowed; otherwise its handles point along x, y and z."""
+        if self.tool_views[name]["rotate"].value:
+            return tuple(float(v) for v in pose_wxyz(pose.direction, pose.roll_deg))
+        return (1.0, 0.0, 0.0, 0.0)
+
+    def _gizmo_moved(self, name: str, gizmo) -> None:
+        """A hand moved the tool's gizmo: the tool is the hand's from now on. A pose that is not finite (or far off) is
+        refused and the gizmo goes back to the tool."""
+        try:
+            position, direction, roll = placement_from_transform(gizmo.wxyz, gizmo.position)
+            rotating = self.tool_views[name]["rotate"].value
+            self.session.take_over(name, position, direction if rotating else None, roll if rotating else None)
+        except Refused:
+            pose = self.tool_views[name]["tool"].pose_at(self.scene.time_s)
+            gizmo.position, gizmo.wxyz = tuple(pose.position_mm), self._gizmo_wxyz(name, pose)
+            raise
+
+    def _scene_clicked(self, event) -> None:
+        """A click in the scene: adds a bleed point where it meets the tissue, once after "Add bleed point"."""
+        if not self.armed_click or self.scene.bleeding is None:
+            return
+        try:
+            if self.session.add_bleed_point_at_click(event.ray_origin, event.ray_direction):
+                self.armed_click = False
+        except Refused as exc:
+            self.session.notice = f"refused: {exc}"
 
     def set_simple_lighting(self, simple: bool) -> None:
         """Environment light and shadows (the default), or the default lights alone (any thread: viser calls only)."""
@@ -296,214 +357,114 @@ class LabApp:
         else:  # viser's environment light at full strength washes the liver out to pale pink
             self.server.scene.configure_environment_map("warehouse", environment_intensity=ENVIRONMENT_INTENSITY)
         self.server.scene.configure_default_lights(enabled=True, cast_shadow=not simple)
-        if getattr(self, "lighting_checkbox", None) is not None:
-            self.lighting_checkbox.value = simple  # (no callback when it shows that already)
+        if self.lighting_checkbox is not None:
+            self.lighting_checkbox.value = simple
 
     def set_running(self, running: bool) -> None:
-        """Pause or resume (any thread: the loop reads the flag)."""
-        self.running = running
-        self.pause_button.label = "Pause" if running else "Resume"
-        if running and self.notice.startswith("**simulation stopped"):
-            self.notice = ""
+        """Pause or resume (any thread)."""
+        self.session.set_running(running)
+        self.pause_button.label = "Pause" if self.session.running else "Resume"
 
-    def _slider(self, label: str, spec: params.ParamSpec, value, key: str | None, apply=None):
-        """A slider over the spec's range. A change is bounded (and rounded for whole numbers) here, then on the
-        simulation thread kept as override `key` (None: not a scene key) and handed to apply(value), or, without
-        apply, it rebuilds the scene."""
-        hint = spec.help + (f". {REBUILD_HINT}" if apply is None else "")
-        handle = self.server.gui.add_slider(label, spec.min, spec.max, slider_step(spec), value, hint=hint)
-        handle.on_update(lambda _: self._slider_changed(handle, spec, key, apply))
-        self.sliders[key or label] = handle
-        return handle
+    # --- keeping the view in step with the session (simulation thread) ------------------------
+    def _show(self, key, value, apply) -> None:
+        """apply(value) when value differs from what the view last showed under key."""
+        if self._shown.get(key, object()) != value:
+            self._shown[key] = value
+            apply(value)
 
-    def _slider_changed(self, handle, spec, key, apply) -> None:
-        """GUI thread: queue the bounded value for the simulation thread."""
-        value = bounded(handle, spec.min, spec.max)
-        if spec.integer:
-            value = int(round(value))
-            if handle.value != value:
-                handle.value = value
-        scene = self.scene
+    def _sync_view(self) -> None:
+        """Tools, markers and buttons as the session has them now; only what changed is sent."""
+        scene, session = self.scene, self.session
+        held = scene.held_tools()
+        for name, view in self.tool_views.items():
+            tool = view["tool"]
+            pose = tool.pose_at(scene.time_s)
+            wxyz = tuple(float(v) for v in pose_wxyz(pose.direction, pose.roll_deg))
+            placed = (tuple(float(v) for v in pose.position_mm), wxyz)
 
-        def change():
-            if self.scene is not scene:  # the scene was switched or rebuilt since: the slider is gone
-                return
-            if key is not None:
-                self.overrides[key] = value
-            if apply is None:
-                self._schedule_rebuild()
+            def move_body(placed, body=view["body"]):
+                body.position, body.wxyz = placed
+
+            self._show(("body", name), placed, move_body)
+            if tool.hand is None:  # the script moves the gizmo; a hand's gizmo stays where the hand left it
+
+                def move_gizmo(placed, gizmo=view["gizmo"]):
+                    gizmo.position, gizmo.wxyz = placed
+
+                self._show(("gizmo", name), (placed[0], self._gizmo_wxyz(name, pose)), move_gizmo)
             else:
-                apply(value)
+                self._shown.pop(("gizmo", name), None)
+            self._show(("switch", name), pose.energized, lambda on, h=view["switch"]: setattr(h, "value", on))
+            hot = pose.energized and tool.suction is None
+            self._show(("hot", name), hot, lambda hot, b=view["body"]: setattr(b, "color", HOT_COLOR if hot else TOOL_COLOR))
+            self._show(("held", name), name in held, lambda on, b=view["release"]: setattr(b, "visible", on))
+        self._show("held", tuple(held), lambda names: setattr(self.held_text, "content",
+                                                             f"held by hand: {', '.join(names)}" if names else "all tools follow the script"))
+        self._show("replay", session.script_ended, lambda ended: setattr(self.replay_button, "visible", ended))
+        self._show("running", session.running, lambda running: setattr(self.pause_button, "label", "Pause" if running else "Resume"))
+        if scene.bleeding is not None:
+            self._sync_points()
 
-        self.commands.put(change)
+    def _sync_points(self) -> None:
+        """A red marker with a gizmo and a folder of sliders for every bleed point; gone when the point is."""
+        points = {point.name: point for point in self.scene.bleed_points}
+        for name in [name for name in self.point_views if name not in points]:
+            marker, folder = self.point_views.pop(name)
+            marker.remove()
+            folder.remove()
+            for key in [key for key in self.sliders if key.startswith(f"bleed_points.{name}.")]:
+                del self.sliders[key]
+        parameters = self.session.parameters()
+        for name, point in points.items():
+            position = tuple(float(v) for v in point.position_at(self.scene.time_s))
+            if name not in self.point_views:
+                marker = self.server.scene.add_transform_controls(f"/bleed/{name}", scale=5.0, position=position, disable_rotations=True)
+                self.server.scene.add_icosphere(f"/bleed/{name}/dot", radius=0.8, color=(150, 0, 0))
+                marker.on_update(lambda event, n=name, m=marker: self._act(event, lambda: self.session.move_bleed_point(n, m.position)))
+                with self.bleed_folder, self.server.gui.add_folder(name) as folder:
+                    for key in [key for key in parameters if key.startswith(f"bleed_points.{name}.")]:
+                        self._slider(key, f"{name}: {slider_label(key.rpartition('.')[2], parameters[key].spec)}")
+                self.point_views[name] = (marker, folder)
+            self._show(("point", name), position, lambda position, m=self.point_views[name][0]: setattr(m, "position", position))
 
-    def _build_sliders(self) -> None:
-        gui, config = self.server.gui, self.scene.config
-        for group, label, table, model, rebuild in SLIDER_GROUPS:
-            if model is not None and model not in self.scene.models:
-                continue
-            values = config[group] if group else config  # the dict the models read each step
-            with gui.add_folder(label, expand_by_default=False):
-                handles = {}
-                for name, spec in table.items():
-                    key = f"{group}.{name}" if group else name
-                    apply = None if name in rebuild else (lambda value, d=values, n=name: d.__setitem__(n, value))
-                    handles[name] = self._slider(slider_label(name, spec), spec, values[name], key, apply)
-                defaults = gui.add_button(f"Reset {label.lower()} to defaults")
-                defaults.on_click(lambda _, t=table, h=handles, g=group: self._reset_sliders(t, h, g))
-
-    def _reset_sliders(self, table, handles, group) -> None:
-        base = params.TISSUE_PRESETS[self.scene.config["tissue"]["preset"]] if group == "tissue" else {n: s.default for n, s in table.items()}
-        for name, handle in handles.items():
-            handle.value = base[name]  # fires on_update, which queues the change (rebuilds coalesce into one)
-
-    def _build_instruments(self) -> None:
-        gui, scene = self.server.gui, self.scene
-        self.tool_meshes, self.tool_gizmos, self.tool_hot, self.tool_placed = {}, {}, {}, {}
-        self.tool_switches, self.tool_switch_shown = {}, {}  # energize checkboxes, and the value each last had
-        with gui.add_folder("Instruments"):
-            demo = gui.add_checkbox("Demo mode (scripted paths)", any(tool.path for tool in scene.instruments))
-            demo.on_update(lambda _: self.commands.put(lambda: self._set_demo(demo.value)))
-            for index, tool in enumerate(scene.instruments):
-                pose = tool.pose_at(scene.time_s)
-                gizmo = self.server.scene.add_transform_controls(f"/tools/{tool.name}", scale=8.0, position=tuple(pose.position_mm), wxyz=tuple(pose_wxyz(pose)))
-                body = instrument_mesh(tool.shape)
-                self.tool_meshes[tool.name] = self.server.scene.add_mesh_simple(
-                    f"/tools/{tool.name}/body", body.vertices.astype(np.float32), body.faces.astype(np.uint32), color=TOOL_COLOR)
-                on = gui.add_checkbox(f"{tool.name}: {'suction on' if tool.suction else 'energized'}", pose.energized)
-                tip = params.INSTRUMENT["tip_temperature_c"]
-                temperature = None if tool.suction else gui.add_slider(f"{tool.name}: tip temperature (C)", tip.min, tip.max, 1.0, pose.tip_temperature_c, hint=tip.help)
-                self.tool_gizmos[tool.name] = gizmo
-                gizmo.on_update(lambda _, t=tool, g=gizmo: self.commands.put(lambda: self._move_tool(t, g.wxyz, g.position)))
-                self.tool_switches[tool.name], self.tool_switch_shown[tool.name] = on, pose.energized
-                on.on_update(lambda _, t=tool, h=on: self._switch_changed(t, h))
-                if temperature is not None:
-                    temperature.on_update(lambda _, t=tool, h=temperature: self.commands.put(lambda: self._tool_setting(t, tip_temperature_c=bounded(h, tip.min, tip.max))))
-                in_file = index < len(scene.config["instruments"])  # not the spare sucker
-                if in_file:  # the shape's sizes: the scene is rebuilt with them
-                    for name in SHAPE_SLIDERS[tool.shape["type"]]:
-                        spec = params.SHAPE[name]
-                        self._slider(f"{tool.name}: {slider_label(name, spec)}", spec, tool.shape[name], f"instruments.{index}.shape.{name}")
-                if tool.suction is not None:  # read every step
-                    for name, spec in params.SUCTION.items():
-                        self._slider(f"{tool.name}: suction {slider_label(name, spec)}", spec, tool.suction[name],
-                                     f"instruments.{index}.suction.{name}" if in_file else None,
-                                     lambda value, d=tool.suction, n=name: d.__setitem__(n, value))
-        if not demo.value:
-            self._set_demo(False)
-
-    def _switch_changed(self, tool, handle) -> None:
-        """GUI thread: a click on an energize checkbox takes the tool over; the echo of _show_tools showing a scripted
-        change does not (it stores the value first)."""
-        value = bool(handle.value)
-        if value != self.tool_switch_shown.get(tool.name):
-            self.tool_switch_shown[tool.name] = value
-            self.commands.put(lambda: self._tool_setting(tool, energized=value))
-
-    def _set_demo(self, on: bool) -> None:
-        for tool in self.scene.instruments:
-            tool.override = None if on else tool.pose_at(self.scene.time_s)
-
-    def _move_tool(self, tool, wxyz, position) -> None:
-        tool.override = pose_from_transform(wxyz, position, tool.pose_at(self.scene.time_s))
-
-    def _tool_setting(self, tool, **changes) -> None:
-        pose = tool.pose_at(self.scene.time_s)
-        tool.override = Pose(pose.position_mm, pose.direction, pose.roll_deg, changes.get("energized", pose.energized), changes.get("tip_temperature_c", pose.tip_temperature_c))
-
-    def _build_bleeding_tools(self) -> None:
-        gui = self.server.gui
-        self.bleed_markers, self.point_folders = {}, {}
-        with gui.add_folder("Bleed points") as folder:
-            add = gui.add_button("Add bleed point (then click the tissue)")
-            remove = gui.add_button("Remove last bleed point")
-        self.bleed_folder = folder
-        for point in self.scene.bleed_points:
-            self._add_marker(point)
-
-        scene = self.scene
-
-        @add.on_click
-        def _(_):
-            def clicked(event):  # the next click in the scene, only
-                self.server.scene.remove_click_callback(clicked)
-                hit = self._hit_surface(np.asarray(event.ray_origin), np.asarray(event.ray_direction))
-                if hit is not None:
-                    self.commands.put(lambda: self._add_point(hit) if self.scene is scene else None)
-
-            self.server.scene.remove_click_callback("all")  # pressing the button twice still adds one point
-            self.server.scene.on_click()(clicked)
-
-        remove.on_click(lambda _: self.commands.put(lambda: self._remove_last_point() if self.scene is scene else None))
-
-    def _hit_surface(self, origin: np.ndarray, direction: np.ndarray):
-        """The surface texel position (mm) nearest to a ray, if the ray passes within 1 mm of one."""
-        surface = self.scene.surface
-        points = surface.position_mm[surface.mask]
-        direction = direction / np.linalg.norm(direction)
-        along = (points - origin) @ direction
-        miss = np.linalg.norm(points - origin - along[:, None] * direction, axis=1)
-        miss[along <= 0] = np.inf
-        best = int(np.argmin(miss))
-        return points[best] if miss[best] < 1.0 else None
-
-    def _add_point(self, position) -> None:
-        """A new bleed point at a surface position, with the default rate and radius (simulation thread)."""
-        taken = {point.name for point in self.scene.bleed_points} | self.removed_points
-        number = len(self.scene.bleed_points) + 1
-        while f"point{number}" in taken:
-            number += 1
-        defaults = params.BLEED_POINT
-        point = self.scene.add_bleed_point(f"point{number}", position, defaults["rate_ml_s"].default, defaults["radius_mm"].default)
-        self.added_points.append(point.item)
-        self._add_marker(point)
-
-    def _add_marker(self, point) -> None:
-        """The point's red marker with a gizmo, and its folder of sliders."""
-        gizmo = self.server.scene.add_transform_controls(f"/bleed/{point.name}", scale=5.0, position=tuple(point.position_at(self.scene.time_s)), disable_rotations=True)
-        self.server.scene.add_icosphere(f"/bleed/{point.name}/dot", radius=0.8, color=(150, 0, 0))
-        gizmo.on_update(lambda _, p=point, g=gizmo: self.commands.put(lambda: self._move_point(p, g.position)))
-        self.bleed_markers[point.name] = gizmo
-        with self.bleed_folder, self.server.gui.add_folder(point.name) as folder:
-            for name, spec in params.BLEED_POINT.items():
-                self._slider(f"{point.name}: {slider_label(name, spec)}", spec, point.item[name], None,
-                             lambda value, p=point, n=name: self._set_point(p, n, value))
-        self.point_folders[point.name] = folder
-
-    def _point_index(self, point) -> int | None:
-        """The point's index in the scene file's bleed_points, or None for a point added in the browser."""
-        return next((index for index, item in enumerate(self.scene.config["bleed_points"]) if item is point.item), None)
-
-    def _remember_point(self, point, *names) -> None:
-        index = self._point_index(point)
-        if index is not None:  # added points keep their item, which the rebuild re-adds
-            for name in names:
-                self.overrides[f"bleed_points.{index}.{name}"] = json.loads(json.dumps(point.item[name]))
-
-    def _set_point(self, point, name: str, value: float) -> None:
-        point.item[name] = value
-        changed = [name]
-        if name == "rate_ml_s" and any(frame.get("rate_ml_s") is not None for frame in point.item["path"]):
-            for frame in point.item["path"]:  # the slider's rate holds from now on
-                frame["rate_ml_s"] = None
-            changed.append("path")
-        self._remember_point(point, *changed)
-
-    def _move_point(self, point, position) -> None:
-        point.item["position_mm"] = [float(v) for v in self.scene.surface.position_mm[self.scene.texel_near(position)]]
-        point.item["path"] = []
-        self._remember_point(point, "position_mm", "path")
-
-    def _remove_last_point(self) -> None:
-        if not self.scene.bleed_points:
-            return
-        point = self.scene.bleed_points.pop()
-        self.bleed_markers.pop(point.name).remove()
-        self.point_folders.pop(point.name).remove()
-        if any(item is point.item for item in self.added_points):
-            self.added_points = [item for item in self.added_points if item is not point.item]
-        else:
-            self.removed_points.add(point.name)
+    def _show_stats(self) -> None:
+        scene, session = self.scene, self.session
+        metrics = scene.metrics()
+        state = "waiting for the first browser" if session.waiting_for_viewer else ("running" if session.running else "paused")
+        lines = [
+            f"t = {scene.time_s:.2f} s, {state}, arch {scene.arch}",
+            f"simulation: {self.stats['steps_per_s']:.0f} steps/s",
+            f"texture: {self.stats['updates_per_s']:.1f} updates/s, {self.stats['bytes_per_s'] / 1024:.0f} kB/s",
+            f"scene built in {session.build_seconds[-1][1]:.1f} s",
+        ]
+        max_t, blood = 0.0, 0.0
+        if "cautery" in metrics:
+            c = metrics["cautery"]
+            max_t = c["max_temperature_c"]
+            lines.append(f"max temperature: {max_t:.0f} C, coagulated: {c['coagulated_area_mm2']:.1f} mm2, charred: {c['charred_area_mm2']:.1f} mm2")
+        if "bleeding" in metrics:
+            b = metrics["bleeding"]
+            blood = b["blood_area_mm2"]
+            lines.append(f"particles alive: {b['alive']} / {b['capacity']}, blood: {blood:.0f} mm2, suctioned: {b['suctioned']}")
+            lines.append(f"bleed points: {len(scene.bleed_points)} of {MAX_BLEED_POINTS} at most"
+                         + (" (click the tissue to add one)" if self.armed_click else ""))
+            if b["dropped_pool_full"]:
+                lines.append(f"**pool full: {b['dropped_pool_full']} particles not spawned**")
+        if session.script_ended:
+            lines.append("the scripted drill has ended: **Replay the script** plays it again")
+        if session.rebuild_pending:
+            lines.append("**restarting the scene with the new value...**")
+        if session.notice:
+            lines.append(f"**{session.notice}**")
+        self.stats_text.content = "  \n".join(lines)
+        for name, view in self.tool_views.items():
+            clearance = scene.tool_clearance_mm(name)
+            text = ("no tissue along its axis" if clearance is None else
+                    f"{clearance:.1f} mm above the tissue" if clearance > 0.05 else f"touching the tissue, {-clearance:.2f} mm in")
+            self._show(("distance", name), text, lambda text, h=view["distance"]: setattr(h, "content", text))
+        self.history.append((scene.time_s, max_t, blood))
+        self.history = [row for row in self.history if scene.time_s - PLOT_SECONDS <= row[0] <= scene.time_s]  # (after a reset too)
+        self.plot.data = tuple(np.array([row[column] for row in self.history], np.float64) for column in self.plot_columns)
 
     # --- simulation thread ------------------------------------------------------------------
     def run(self, until=None, timeout_s: float | None = None) -> bool:
@@ -520,15 +481,14 @@ class LabApp:
             except Exception as exc:  # keep serving the browsers; the user can reset or switch scenes
                 traceback.print_exc()
                 self.set_running(False)
-                self.notice = f"**simulation stopped: {type(exc).__name__}: {exc}** (press Resume or Reset)"
-                self.stats_text.content = self.notice
+                self.session.notice = f"simulation stopped: {type(exc).__name__}: {exc} (press Resume or Reset)"
+                self.stats_text.content = self.session.notice
                 time.sleep(0.5)
         return False
 
     def _run(self, until, deadline) -> bool:
         last_frame = last_stats = last_check = time.perf_counter()
         steps = updates = sent = 0
-        wall_anchor, sim_anchor = time.perf_counter(), self.scene.time_s
         while not self.stop_event.is_set():
             now = time.perf_counter()
             if until is not None and now - last_check >= 0.05:
@@ -540,30 +500,19 @@ class LabApp:
                     raise UntilFailed() from exc
                 if deadline is not None and time.monotonic() > deadline:
                     return False
-            while not self.commands.empty():
-                self.commands.get_nowait()()
-                wall_anchor, sim_anchor = time.perf_counter(), self.scene.time_s
-            if self._rebuild_at is not None and time.monotonic() >= self._rebuild_at:
-                self._rebuild_at = None
-                self._load(self.scene_path)
-                wall_anchor, sim_anchor = time.perf_counter(), self.scene.time_s
-            now = time.perf_counter()
-            behind = (now - wall_anchor) * self.speed - (self.scene.time_s - sim_anchor)
-            if (self.running and behind > 0) or self.single_steps:
-                self.single_steps = max(0, self.single_steps - 1)
-                self.scene.step()
-                steps += 1
-                if behind > 0.5:  # cannot keep up: drop the backlog rather than spiral
-                    wall_anchor, sim_anchor = now, self.scene.time_s
-            else:
+            taken = self.session.tick()
+            steps += taken
+            if self.session.builds != self.shown_builds:
+                self._show_scene()
+            if not taken:
                 time.sleep(0.002)
-                if not self.running:
-                    wall_anchor, sim_anchor = now, self.scene.time_s
+            now = time.perf_counter()
             if now - last_frame >= FRAME_INTERVAL_S:
-                self._show_tools()
-                result = self.stream.update(self.scene.composite())
-                updates += result["tiles_sent"] > 0  # updates that sent something
-                sent += result["bytes"]
+                self._sync_view()
+                if self.session.broken is None:  # a non-finite field is named in the stats, not drawn
+                    result = self.stream.update(self.scene.composite())
+                    updates += result["tiles_sent"] > 0  # updates that sent something
+                    sent += result["bytes"]
                 last_frame = now
             if now - last_stats >= STATS_INTERVAL_S:
                 span = now - last_stats
@@ -573,61 +522,24 @@ class LabApp:
                 self._show_stats()
         return False
 
-    def _show_tools(self) -> None:
-        """Move scripted tools' gizmos and colour energized ones (only what changed is sent)."""
-        for tool in self.scene.instruments:
-            pose = tool.pose_at(self.scene.time_s)
-            placed = (tuple(pose.position_mm), tuple(pose_wxyz(pose)))
-            if tool.override is None and self.tool_placed.get(tool.name) != placed:
-                gizmo = self.tool_gizmos[tool.name]
-                gizmo.position, gizmo.wxyz = placed
-                self.tool_placed[tool.name] = placed
-            switch = self.tool_switches[tool.name]
-            if switch.value != pose.energized:  # a scripted switch shows in the checkbox
-                self.tool_switch_shown[tool.name] = pose.energized
-                switch.value = pose.energized
-            hot = pose.energized and tool.suction is None
-            if self.tool_hot.get(tool.name) != hot:
-                self.tool_meshes[tool.name].color = HOT_COLOR if hot else TOOL_COLOR
-                self.tool_hot[tool.name] = hot
-
-    def _show_stats(self) -> None:
-        metrics = self.scene.metrics()
-        lines = [
-            f"t = {self.scene.time_s:.2f} s, {'running' if self.running else 'paused'}, arch {self.scene.arch}",
-            f"simulation: {self.stats['steps_per_s']:.0f} steps/s",
-            f"texture: {self.stats['updates_per_s']:.1f} updates/s, {self.stats['bytes_per_s'] / 1024:.0f} kB/s",
-        ]
-        max_t, blood = 0.0, 0.0
-        if "cautery" in metrics:
-            c = metrics["cautery"]
-            max_t = c["max_temperature_c"]
-            lines.append(f"max temperature: {max_t:.0f} C, coagulated: {c['coagulated_area_mm2']:.1f} mm2, charred: {c['charred_area_mm2']:.1f} mm2")
-        if "bleeding" in metrics:
-            b = metrics["bleeding"]
-            blood = b["blood_area_mm2"]
-            lines.append(f"particles alive: {b['alive']} / {b['capacity']}, blood: {blood:.0f} mm2, suctioned: {b['suctioned']}")
-            if b["dropped_pool_full"]:
-                lines.append(f"**pool full: {b['dropped_pool_full']} particles not spawned**")
-        if self._rebuild_at is not None:
-            lines.append("**restarting the scene with the new value...**")
-        if self.notice:
-            lines.append(self.notice)
-        self.stats_text.content = "  \n".join(lines)
-        self.history.append((self.scene.time_s, max_t, blood))
-        self.history = [row for row in self.history if self.scene.time_s - PLOT_SECONDS <= row[0] <= self.scene.time_s]  # (after a reset too)
-        self.plot.data = tuple(np.array([row[column] for row in self.history], np.float64) for column in self.plot_columns)
-
     def close(self) -> None:
         self.stop_event.set()
         self.stream.close()
         self.server.stop()
 
 
-def serve(scene_path, host: str, port: int, arch: str) -> None:
-    """Start the lab and block until Ctrl-C."""
-    app = LabApp(scene_path, host, port, arch)
-    print(f"tissue lab: http://{host}:{port}  ({Path(scene_path).name}, {app.scene.arch}); Ctrl-C stops", flush=True)
+def serve(scene_path, host: str, port: int, arch: str, overrides=(), allowed_origins=()) -> None:
+    """Start the lab, say where it is, and block until Ctrl-C. The scene waits at t = 0 for the first browser."""
+    app = LabApp(scene_path, host, port, arch, overrides=overrides, wait_for_viewer=True, allowed_origins=allowed_origins)
+    bound = app.server.get_port()
+    if bound != port:
+        print(f"warning: port {port} is busy; the lab serves on port {bound} instead", file=sys.stderr, flush=True)
+    if host not in LOOPBACK_HOSTS:
+        print(f"warning: --host {host} serves the lab to every machine that can reach this one, with no password; for a "
+              "remote demo put a reverse proxy with authentication in front of it (see the README)", file=sys.stderr, flush=True)
+    shown = f"[{host}]" if ":" in host else host
+    print(f"tissue lab: http://{shown}:{bound}  ({Path(scene_path).name}, {app.scene.arch}, built in "
+          f"{app.session.build_seconds[-1][1]:.1f} s); waits at t = 0 for the first browser; Ctrl-C stops", flush=True)
     try:
         app.run()  # Taichi stays on the main thread, where the scene was built
     except KeyboardInterrupt:

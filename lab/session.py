@@ -403,10 +403,11 @@ class LabSession:
             self.removed_points.add(point.name)
 
     def _spare_sucker(self, scene: Scene) -> Instrument:
-        """A suction cannula for scenes that bleed without one, parked above the front left of the tissue, in view."""
+        """A suction cannula for scenes that bleed without one, parked above the front left of the tissue, in view, its
+        shaft leaning back away from the viewer (as a hand across the table holds it)."""
         lo, hi = scene.surface.vertices_mm.min(axis=0), scene.surface.vertices_mm.max(axis=0)
-        spot = np.array([lo[0] + 0.2 * (hi[0] - lo[0]), lo[1] + 0.2 * (hi[1] - lo[1]), hi[2] + 6.0])
-        parked = Pose(spot, np.array([0.0, 0.3, -1.0]), 0.0, False, 20.0)
+        spot = np.array([lo[0] + 0.2 * (hi[0] - lo[0]), lo[1] + 0.35 * (hi[1] - lo[1]), hi[2] + 6.0])
+        parked = Pose(spot, np.array([0.0, -0.6, -1.0]), 0.0, False, 20.0)
         name = "sucker" if all(tool.name != "sucker" for tool in scene.instruments) else "spare_sucker"
         return Instrument(name, dict(SPARE_SUCKER_SHAPE), parked, suction=self.spare_suction)
 

@@ -1,5 +1,5 @@
 """Per-scene cost: wall ms per simulated second in each model (cautery, bleeding, compose, texture encoding), so a
-scene is seen to pay only for the models it names."""
+scene is seen to pay only for the models it names; and how long a trainer waits for each scene to be built."""
 import socket
 import time
 
@@ -58,12 +58,33 @@ def scene_cost(path, seconds: float, server) -> dict:
     }
 
 
+def build_times(path) -> dict:
+    """Wall seconds until a scene shows in the lab: a lab session's build (scene file, mesh and textures, texel maps,
+    models, a fresh Taichi runtime) with its first step and composite (the kernels compile then, or load from the
+    offline cache); first when the lab starts on it, then when it is built again (a switch or a rebuild)."""
+    from lab.session import LabSession
+
+    started = time.perf_counter()
+    session = LabSession(path)
+    session.scene.step()
+    session.scene.composite()
+    first = time.perf_counter() - started
+    started = time.perf_counter()
+    session.back_to_scene_file()
+    session.tick()  # the rebuild; its first tick takes no step
+    session.scene.step()
+    session.scene.composite()
+    return {"first_build_s": first, "rebuild_s": time.perf_counter() - started}
+
+
 def run(quick: bool) -> dict:
     import viser
 
+    paths = sorted((REPO_ROOT / "scenes").glob("*.yaml"))
+    builds = {path.name: build_times(path) for path in paths}
     server = viser.ViserServer(host="127.0.0.1", port=_free_port(), verbose=False)
     try:
-        rows = [scene_cost(path, 1.0 if quick else 5.0, server) for path in sorted((REPO_ROOT / "scenes").glob("*.yaml"))]
+        rows = [{**scene_cost(path, 1.0 if quick else 5.0, server), **builds[path.name]} for path in paths]
     finally:
         server.stop()
     return {"frames_per_simulated_s": FRAMES_PER_SIMULATED_S, "scenes": rows}
@@ -77,14 +98,17 @@ def render(results: dict) -> list[str]:
         f"step; wall milliseconds per simulated second in each model (device synchronised around each), with {results['frames_per_simulated_s']}",
         "display updates per simulated second composed and encoded as the browser lab does (changed 64² tiles as PNG in",
         "GLB). A model the scene does not name costs nothing. Real-time factor: simulated seconds per wall second.",
+        "Build: wall seconds until the scene shows in the lab (lab session build, first step and composite), when the lab",
+        "starts on it and when it is built again (a scene switch or a rebuild slider).",
         "",
-        "| scene | models | texels | " + " | ".join(MODELS) + " | total | real-time factor | kB per update | particles at end |",
-        "|---|---|---|" + "---|" * len(MODELS) + "---|---|---|---|",
+        "| scene | models | texels | " + " | ".join(MODELS) + " | total | real-time factor | kB per update | particles at end | build s | rebuild s |",
+        "|---|---|---|" + "---|" * len(MODELS) + "---|---|---|---|---|---|",
     ]
     for row in results["scenes"]:
         costs = " | ".join(f"{row['ms_per_simulated_s'][m]:.0f}" if m in row["models"] or m in ("compose", "encoding") else "-" for m in MODELS)
         lines.append(f"| {row['scene']} | {', '.join(row['models'])} | {row['texture_size']}² | {costs} | {row['total_ms_per_simulated_s']:.0f} | "
-                     f"{row['realtime_factor']:.2f} | {row['bytes_per_update'] / 1000:.1f} | {row['particles_at_end']:,} |")
+                     f"{row['realtime_factor']:.2f} | {row['bytes_per_update'] / 1000:.1f} | {row['particles_at_end']:,} | "
+                     f"{row['first_build_s']:.1f} | {row['rebuild_s']:.1f} |")
     return lines
 
 

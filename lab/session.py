@@ -430,19 +430,18 @@ class LabSession:
             self.on_build("done", self.scene.name, time.perf_counter() - started)
             return
         notice = ""
-        if not first:
-            self.scene = None
-            backend.shutdown()
+        if not first:  # the old scene stays readable (config, surface: NumPy) for callers on other threads, but
+            backend.shutdown()  # its fields are gone: only the simulation thread touches fields, after this build
         try:
             scene = Scene(config, self.arch, inputs)
-        except ConfigError as exc:
+        except Exception as exc:  # whatever failed, the old scene is gone: the last good one comes back from memory
             if first:
                 raise
             path, overrides, config, inputs = self._good
             self.overrides = dict(overrides)
             backend.shutdown()
             scene = Scene(config, self.arch, inputs)
-            notice = f"not switched: {exc}"
+            notice = f"not switched: {exc if isinstance(exc, ConfigError) else f'{type(exc).__name__}: {exc}'}"
         self._good = (path, dict(self.overrides), config, inputs)
         self.scene_path, self.scene, self.notice, self.broken = path, scene, notice, None
         self.builds += 1

@@ -217,7 +217,7 @@ def test_bleed_points_and_waiting_commands_are_capped(session):
     assert len(session.scene.bleed_points) == MAX_BLEED_POINTS and refused == 40 - added > 0
     with pytest.raises(Refused):
         for _ in range(MAX_PENDING + 1):
-            session.single_step()
+            session.reset()
     session.tick()
     for _ in range(len(session.scene.bleed_points) - 1):
         session.remove_bleed_point()

@@ -58,12 +58,20 @@ def main(argv=None) -> int:
 
 
 def _run(args) -> int:
+    """Exit codes as in the module docstring, and 130 after Ctrl-C (one line on stderr; --out left as it was)."""
     from lab import runner
     from sims.scene import Scene
 
-    scene = Scene.from_file(args.scene, args.set, arch=args.arch)
+    try:
+        scene = Scene.from_file(args.scene, args.set, arch=args.arch)
+    except KeyboardInterrupt:
+        print(f"interrupted while building the scene; {args.out} left as it was", file=sys.stderr)
+        return 130
     try:
         metrics = runner.run(scene, args.out, args.duration, args.frames_every, progress=not args.quiet)
+    except runner.RunInterrupted as exc:
+        print(exc, file=sys.stderr)
+        return 130
     except runner.SimulationDiverged as exc:
         print(f"error: {args.scene}: simulation: {exc}", file=sys.stderr)
         return 3

@@ -1,26 +1,44 @@
-"""Headless scene runs: steps with a progress bar, frames, and the output files of DESIGN section 4."""
+"""Headless scene runs: steps with a progress bar, frames, and the output files of DESIGN section 4.
+
+Outputs are complete or absent: a run writes everything into a fresh temporary folder beside the output folder
+(`.<name>.<random>`), then swaps it in (the previous folder renamed aside, the new one renamed into place, the
+previous one deleted), so an interrupted or failed run leaves the previous complete set or the new complete set,
+never a mix. The output folder is the run's own: it is replaced as a whole, and a folder holding anything a run
+does not write is refused before the run starts (nothing is deleted that a run did not make).
+"""
+import contextlib
+import errno
 import json
 import math
+import os
+import shutil
+import signal
 import sys
+import tempfile
 import time
 from pathlib import Path
 
 from PIL import Image
 from tqdm import tqdm
 
+from sims.cautery import SubstepLimit
+from sims.config import ConfigError
 from sims.scene import Scene, save_npz_atomic
 
 FINITE_CHECK_EVERY = 50  # steps between NaN/inf checks
+OUTPUTS = ("metrics.json", "final.png", "state.npz", "frames")  # what a run writes into its folder
 
 
 class SimulationDiverged(RuntimeError):
     """A field became NaN or inf; the message names the field and the step."""
 
 
+class RunInterrupted(Exception):
+    """Ctrl-C (KeyboardInterrupt) during a run; the message says when and what the output folder holds."""
+
+
 def write_png(path: Path, rgb) -> None:
-    temp = path.with_name(f".{path.name}.tmp")
-    Image.fromarray(rgb).save(temp, format="PNG")
-    temp.replace(path)
+    Image.fromarray(rgb).save(path, format="PNG")
 
 
 def _warn_pool_full(scene: Scene, bar) -> None:
@@ -32,19 +50,73 @@ def _warn_pool_full(scene: Scene, bar) -> None:
                   "new blood is dropped and counted in metrics.json (raise bleeding.capacity)", file=sys.stderr)
 
 
-def run(scene: Scene, out_dir, duration_s: float | None = None, frames_every_s: float | None = None, progress: bool = True) -> dict:
-    """Run `scene` for duration_s (default: the scene's), write outputs into out_dir, return metrics."""
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    duration = scene.config["duration_s"] if duration_s is None else duration_s
-    total = int(round(duration / scene.time_step_s))
-    frame_every = max(1, int(round(frames_every_s / scene.time_step_s))) if frames_every_s else 0
+def check_scene(scene: Scene) -> None:
+    """Before a run: say on stderr when the mesh looks like one in metres; raise ConfigError when the explicit heat
+    scheme would need more than sims.cautery.MAX_SUBSTEPS substeps per step."""
+    warning = scene.surface.size_warning
+    if warning:
+        print(f"warning: {scene.file}: mesh: {warning}", file=sys.stderr)
+    if scene.cautery is not None:
+        try:
+            scene.cautery.substeps(scene.time_step_s)
+        except SubstepLimit as exc:
+            raise ConfigError(scene.file, "cautery.scheme", str(exc)) from None
+
+
+def _check_output_folder(out: Path) -> None:
+    """Raise OSError unless `out` is absent, empty, or holds only what a run writes (OUTPUTS)."""
+    if not out.exists():
+        return
+    if not out.is_dir():
+        raise NotADirectoryError(errno.ENOTDIR, "exists and is not a folder")
+    foreign = sorted(entry.name for entry in out.iterdir() if entry.name not in OUTPUTS)
     frames = out / "frames"
+    if frames.is_dir():
+        foreign += sorted(f"frames/{entry.name}" for entry in frames.iterdir()
+                          if not (entry.name.startswith("frame_") and entry.suffix == ".png"))
+    if foreign:
+        raise FileExistsError(errno.ENOTEMPTY, f"holds files a run does not write ({', '.join(foreign[:3])}{', ...' if len(foreign) > 3 else ''}); "
+                                  "use a new folder, an empty one or a previous run's")
+
+
+@contextlib.contextmanager
+def _interrupts_held():
+    """Hold Ctrl-C (SIGINT) over the block. One that arrived meanwhile is dropped: the block has finished (and
+    its outcome, the new outputs in place or an error, stands)."""
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        try:
+            signal.pthread_sigmask(signal.SIG_SETMASK, previous)
+        except KeyboardInterrupt:
+            pass
+
+
+def _swap_in(new: Path, out: Path) -> None:
+    """Put folder `new` at `out`, Ctrl-C held throughout: the previous `out` is renamed aside (onto an empty folder
+    of a unique name), `new` renamed into place (or the previous one back on failure), the previous one deleted."""
+    with _interrupts_held():
+        aside = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.old."))
+        try:
+            moved = out.exists()
+            if moved:
+                os.rename(out, aside)
+            try:
+                os.rename(new, out)
+            except OSError:
+                if moved:
+                    os.rename(aside, out)
+                raise
+        finally:
+            shutil.rmtree(aside, ignore_errors=True)
+
+
+def _simulate(scene: Scene, folder: Path, total: int, frame_every: int, progress: bool) -> dict:
+    """Run `total` steps, writing frames then final.png, state.npz and metrics.json into `folder`; return metrics."""
     if frame_every:
-        frames.mkdir(exist_ok=True)
-        for old in frames.glob("frame_*.png"):
-            old.unlink()
-        write_png(frames / "frame_00000.png", scene.composite())
+        (folder / "frames").mkdir()
+        write_png(folder / "frames" / "frame_00000.png", scene.composite())
     start = time.perf_counter()
     bar = tqdm(total=total, desc=scene.name, unit="step", file=sys.stderr, delay=1.0, disable=not progress, dynamic_ncols=True)
     with bar:
@@ -57,13 +129,36 @@ def run(scene: Scene, out_dir, duration_s: float | None = None, frames_every_s: 
                     raise SimulationDiverged(f"{bad} became non-finite at step {index} (t = {scene.time_s:.4g} s)")
             _warn_pool_full(scene, bar)
             if frame_every and index % frame_every == 0:
-                write_png(frames / f"frame_{index // frame_every:05d}.png", scene.composite())
+                write_png(folder / "frames" / f"frame_{index // frame_every:05d}.png", scene.composite())
     wall = time.perf_counter() - start
     metrics = scene.metrics()
     metrics.update(wall_s=wall, finite=True, steps_per_s=total / wall if wall > 0 else math.inf)
-    write_png(out / "final.png", scene.composite())
-    save_npz_atomic(out / "state.npz", scene.state_arrays())
-    temp = out / ".metrics.json.tmp"
-    temp.write_text(json.dumps(metrics, indent=2) + "\n")
-    temp.replace(out / "metrics.json")
+    write_png(folder / "final.png", scene.composite())
+    save_npz_atomic(folder / "state.npz", scene.state_arrays())
+    (folder / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
+    return metrics
+
+
+def run(scene: Scene, out_dir, duration_s: float | None = None, frames_every_s: float | None = None, progress: bool = True) -> dict:
+    """Run `scene` for duration_s (default: the scene's) and replace the folder out_dir by its outputs; return metrics.
+
+    Raises ConfigError (check_scene), OSError (out_dir not usable: _check_output_folder, or a write failed),
+    SimulationDiverged, RunInterrupted (Ctrl-C). On any of them out_dir is as it was before the run."""
+    out = Path(out_dir)
+    check_scene(scene)
+    _check_output_folder(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    duration = scene.config["duration_s"] if duration_s is None else duration_s
+    total = int(round(duration / scene.time_step_s))
+    frame_every = max(1, int(round(frames_every_s / scene.time_step_s))) if frames_every_s else 0
+    had_outputs = out.exists()
+    folder = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}."))
+    try:
+        metrics = _simulate(scene, folder, total, frame_every, progress)
+        _swap_in(folder, out)
+    except KeyboardInterrupt:
+        kept = f"previous outputs in {out} kept" if had_outputs else f"nothing written to {out}"
+        raise RunInterrupted(f"interrupted at t = {scene.time_s:.2f} s; {kept}") from None
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
     return metrics

@@ -10,7 +10,8 @@ Heat: rho c dT/dt = k LB(T) + w_b rho_b c_b (T_body - T) + Q_tool.
 - Two time-stepping schemes (SCHEMES; Cautery(..., scheme=...), scene key `cautery.scheme`):
   "explicit" (default): forward-Euler diffusion substeps, added automatically below the stability
   limit for any parameter value (explicit_substeps(dt): a few per 0.01 s step at 1024^2 texels for
-  liver, growing with k / texel size^2, e.g. hundreds for dt = 1 s at k = 5 W/(m K)).
+  liver, growing with k / texel size^2, e.g. hundreds for dt = 1 s at k = 5 W/(m K)), at most
+  MAX_SUBSTEPS: substeps(dt) raises SubstepLimit beyond it (a run is refused before its first step).
   "implicit": one backward-Euler diffusion step per time step, unconditionally stable. Backward
   Euler (theta = 1) rather than Crank-Nicolson because it keeps the discrete maximum principle for
   every dt: M = A + dt alpha L is an M-matrix, M^-1 A >= 0 with rows summing to 1, so the diffused
@@ -51,6 +52,10 @@ GAS_CONSTANT = 8.314462618  # J/(mol K)
 KELVIN = 273.15
 OMEGA_MAX = 1.0e6           # Omega is capped here: 1 - exp(-Omega) is 1 in float32 long before
 STABILITY_MARGIN = 0.9      # explicit substep at this fraction of the convexity limit
+# Explicit heat substeps a step may take. Past it the implicit scheme is the better choice: an explicit 512^2
+# substep costs about 1 ms here, so 256 make a 0.01 s step 25x slower than real time. The lab's scenes stay far
+# below (1-3 at 512^2-1024^2); the slider extremes reach 138 at 1024^2 (k = 5 W/(m K), dt = 0.05 s), 551 at 2048^2.
+MAX_SUBSTEPS = 256
 CHARRED_LEVEL = 0.5         # char at or above this counts as charred area
 SCHEMES = ("explicit", "implicit")  # heat time stepping (sims.config.CAUTERY_SCHEMES lists the same)
 CG_TOLERANCE = 1e-5         # implicit: relative residual |r| / |dt alpha L T| to stop at
@@ -94,6 +99,10 @@ def edge_weights(coefficients: np.ndarray, mask: np.ndarray) -> np.ndarray:
         neighbour_in = padded_mask[1 + dr: 1 + dr + height, 1 + dc: 1 + dc + width]
         weights[..., index] = np.where(mask & neighbour_in, 0.5 * (c + neighbour_c), 0.0)
     return weights.astype(np.float32)
+
+
+class SubstepLimit(ValueError):
+    """The explicit heat scheme would need more than MAX_SUBSTEPS substeps per step; the message says what to change."""
 
 
 @ti.data_oriented
@@ -172,8 +181,17 @@ class Cautery:
         return c["contact_conductance_w_m2k"] / (t["density_kg_m3"] * t["specific_heat_j_kgk"] * c["heated_layer_mm"] * 1e-3)
 
     def substeps(self, dt_s: float) -> int:
-        """Heat substeps a step of dt_s takes: explicit_substeps(dt_s), or 1 for the implicit scheme."""
-        return 1 if self.scheme == "implicit" else self.explicit_substeps(dt_s)
+        """Heat substeps a step of dt_s takes: explicit_substeps(dt_s), or 1 for the implicit scheme.
+        Raises SubstepLimit when the explicit scheme would need more than MAX_SUBSTEPS."""
+        if self.scheme == "implicit":
+            return 1
+        count = self.explicit_substeps(dt_s)
+        if count > MAX_SUBSTEPS:
+            texel_mm = 2.0 / math.sqrt(self.max_exchange_1_mm2)  # a square texel of side h exchanges 4 / h^2
+            raise SubstepLimit(f"the explicit heat scheme needs {count:.3g} substeps per {dt_s:g} s step, over the cap of "
+                               f"{MAX_SUBSTEPS} (smallest texels about {texel_mm:.2g} mm across); use cautery.scheme=implicit, "
+                               "a smaller time_step_s or a smaller texture_size")
+        return count
 
     def explicit_substeps(self, dt_s: float) -> int:
         """Explicit heat substeps needed for a step of dt_s to stay a convex update."""

@@ -6,6 +6,9 @@ u = (c + 0.5) / W, v = 1 - (r + 0.5) / H. "Grid coordinates" x = u W (columns) a
 """
 
 import hashlib
+import os
+import tempfile
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -17,12 +20,19 @@ from scipy import ndimage
 from sims.backend import cache_dir
 
 UV_OVERLAP_TOLERANCE = 1e-3  # fraction of covered texels two triangles may both claim before UVs count as overlapping
+MAX_COORDINATE_MM = 1e5  # a vertex farther out than this (100 m) is a unit or export error, not tissue
+SMALL_MESH_MM = 1.0      # a tissue mesh whose bounding box diagonal is shorter than this is probably in metres
 _BARY_EPS = 1e-5
-_DEGENERATE_AREA_FRACTION = 1e-4  # texels smaller than this fraction of the median texel area are masked
+# Triangle shape limits (per triangle, on its texels' sides in mm: the singular values of [dP/dx dP/dy]).
+# The explicit heat substep count grows as 1 / (shortest texel side)^2, and a texel's conductance toward its
+# neighbours as its longest side / its shortest side, so one sliver (1e-3 mm wide, 10 mm long) asked for
+# 44,610 substeps per step at 64^2 texels. A triangle outside these limits is skipped (its texels masked):
+_MIN_SIDE_FRACTION = 0.1  # shortest texel side at least this fraction of the median triangle's (100x the substeps at most)
+_MAX_TEXEL_ASPECT = 20.0  # texels at most this many times longer than wide (the meshes here measure 2.1 at most)
 
 
 class MeshError(ValueError):
-    """A mesh that cannot be used (unreadable, empty, covering no texels)."""
+    """A mesh that cannot be used (unreadable, empty, vertices not finite or absurdly far out, covering no texels)."""
 
 
 @dataclass
@@ -57,6 +67,17 @@ class TissueSurface:
     def area_mm2(self) -> float:
         return float(self.texel_area_mm2.sum(dtype=np.float64))
 
+    @property
+    def size_warning(self) -> str | None:
+        """A warning (one line) when the mesh is under SMALL_MESH_MM across, as a mesh in metres would be; else None.
+
+        A warning, not an error: a small mesh is odd but usable. When its texels are too small for the explicit heat
+        scheme the run is refused anyway (sims.cautery.MAX_SUBSTEPS), and this line says why."""
+        diagonal = float(np.linalg.norm(np.ptp(self.vertices_mm.astype(np.float64), axis=0)))
+        if diagonal >= SMALL_MESH_MM:
+            return None
+        return f"mesh is {diagonal:.3g} mm across: is it in metres? lengths are in millimetres"
+
 
 def load_mesh(path) -> trimesh.Trimesh:
     """Read any mesh trimesh reads (OBJ, PLY, GLB, STL) without merging UV seams. Raises MeshError."""
@@ -66,9 +87,23 @@ def load_mesh(path) -> trimesh.Trimesh:
         raise MeshError(f"cannot read mesh: {exc}") from None
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise MeshError("the file holds no triangles")
-    if not np.isfinite(mesh.vertices).all():
-        raise MeshError("vertex positions are not all finite")
+    check_vertices(mesh.vertices)
     return mesh
+
+
+def check_vertices(vertices) -> None:
+    """Raise MeshError unless every vertex (V, 3) is finite and within MAX_COORDINATE_MM of the origin on every axis.
+
+    Checked before anything else uses the mesh: xatlas never returns on a vertex at 1e39 (float32 infinity)."""
+    vertices = np.asarray(vertices, np.float64)
+    bad = ~np.isfinite(vertices).all(axis=1)
+    if bad.any():
+        first = ", ".join(f"{value:g}" for value in vertices[bad][0])
+        raise MeshError(f"{int(bad.sum())} of {len(vertices)} vertices are not finite (the first at {first})")
+    largest = float(np.abs(vertices).max(initial=0.0))
+    if largest > MAX_COORDINATE_MM:
+        raise MeshError(f"a vertex coordinate of {largest:.3g} mm found; meshes are in millimetres "
+                        f"(at most {MAX_COORDINATE_MM:g} mm from the origin)")
 
 
 def mesh_uv(mesh: trimesh.Trimesh) -> np.ndarray | None:
@@ -80,7 +115,10 @@ def mesh_uv(mesh: trimesh.Trimesh) -> np.ndarray | None:
 
 
 def build_surface(mesh: trimesh.Trimesh, size: int) -> TissueSurface:
-    """Rasterise `mesh` into size x size texel maps, using its UVs when unique, else an xatlas atlas."""
+    """Rasterise `mesh` into size x size texel maps, using its UVs when they are unique and the triangles they
+    make the maps skip (_triangle_frames) hold at most UV_OVERLAP_TOLERANCE of the area, else an xatlas atlas.
+    Raises MeshError (check_vertices; no texel covered)."""
+    check_vertices(mesh.vertices)
     vertices = np.asarray(mesh.vertices, np.float64)
     faces = np.asarray(mesh.faces, np.int64)
     uv = mesh_uv(mesh)
@@ -89,7 +127,7 @@ def build_surface(mesh: trimesh.Trimesh, size: int) -> TissueSurface:
     if uv is not None and np.isfinite(uv).all() and uv.min() >= -1e-6 and uv.max() <= 1 + 1e-6:
         owner, overlap = _rasterise(vertices, faces, uv, size)
         covered = max(int((owner >= 0).sum()), 1)
-        if overlap / covered > UV_OVERLAP_TOLERANCE or _uv_collapsed_fraction(vertices, faces, uv) > UV_OVERLAP_TOLERANCE:
+        if overlap / covered > UV_OVERLAP_TOLERANCE or _skipped_area_fraction(vertices, faces, uv, size) > UV_OVERLAP_TOLERANCE:
             owner = None
     if owner is None:
         vertices, faces, uv = atlas_uv(vertices, faces, size)
@@ -98,22 +136,56 @@ def build_surface(mesh: trimesh.Trimesh, size: int) -> TissueSurface:
     return _texel_maps(vertices, faces, uv, owner, size, uv_source)
 
 
-def _uv_collapsed_fraction(vertices, faces, uv) -> float:
-    """Fraction of the 3D surface area whose triangles have zero area in UV."""
-    tri, tri_uv = vertices[faces], uv[faces]
+def _skipped_area_fraction(vertices, faces, uv, size) -> float:
+    """Fraction of the 3D surface area on triangles the texel maps skip (zero area in UV, too thin, too stretched)."""
+    tri = vertices[faces]
     area_3d = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-    d1, d2 = tri_uv[:, 1] - tri_uv[:, 0], tri_uv[:, 2] - tri_uv[:, 0]
-    area_uv = 0.5 * np.abs(d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0])
-    return float(area_3d[area_uv < 1e-12].sum() / max(area_3d.sum(), 1e-30))
+    valid = _triangle_frames(vertices, faces, uv, size)[3]
+    return float(area_3d[~valid].sum() / max(area_3d.sum(), 1e-30))
 
 
 def atlas_uv(vertices: np.ndarray, faces: np.ndarray, size: int):
-    """Unique UVs from xatlas (cached on disk): (vertices (V', 3), faces (F, 3), uv (V', 2))."""
+    """Unique UVs from xatlas (cached on disk): (vertices (V', 3), faces (F, 3), uv (V', 2)).
+
+    The cache entry is written under a unique temporary name and renamed, so it is complete or absent; an entry
+    that cannot be read all the same (truncated, corrupt) is deleted and the atlas computed again."""
+    check_vertices(vertices)
     key = hashlib.sha1(vertices.astype(np.float64).tobytes() + faces.astype(np.int64).tobytes() + str(size).encode()).hexdigest()
     cached = cache_dir() / "atlas" / f"{key}.npz"
-    if cached.is_file():
-        with np.load(cached) as data:
+    result = _read_atlas(cached)
+    if result is None:
+        result = _compute_atlas(vertices, faces, size)
+        _write_atlas(cached, result)
+    return result
+
+
+def _read_atlas(path: Path):
+    """A cached atlas (vertices, faces, uv), or None when there is none or it cannot be read (then it is deleted)."""
+    if not path.is_file():
+        return None
+    try:
+        with np.load(path) as data:
             return data["vertices"], data["faces"], data["uv"]
+    except (OSError, EOFError, ValueError, KeyError, zipfile.BadZipFile):
+        path.unlink(missing_ok=True)
+        return None
+
+
+def _write_atlas(path: Path, result) -> None:
+    """Save an atlas as .npz: a unique temporary file in the same folder, then os.replace."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    handle, temp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".npz")
+    try:
+        with os.fdopen(handle, "wb") as file:
+            np.savez(file, vertices=result[0], faces=result[1], uv=result[2])
+        os.replace(temp, path)
+    except BaseException:
+        Path(temp).unlink(missing_ok=True)
+        raise
+
+
+def _compute_atlas(vertices: np.ndarray, faces: np.ndarray, size: int):
+    """xatlas charts packed for a size x size texture: (vertices (V', 3), faces (F, 3), uv (V', 2))."""
     import xatlas
 
     atlas = xatlas.Atlas()
@@ -124,10 +196,7 @@ def atlas_uv(vertices: np.ndarray, faces: np.ndarray, size: int):
     pack.bilinear = True
     atlas.generate(pack_options=pack)
     vmapping, indices, uv = atlas[0]
-    result = vertices[vmapping], indices.astype(np.int64), uv.astype(np.float64)
-    cached.parent.mkdir(parents=True, exist_ok=True)
-    np.savez(cached, vertices=result[0], faces=result[1], uv=result[2])
-    return result
+    return vertices[vmapping], indices.astype(np.int64), uv.astype(np.float64)
 
 
 def _grid_coords(uv: np.ndarray, size: int) -> np.ndarray:
@@ -162,20 +231,32 @@ def _claim_texels(tri_xy: ti.types.ndarray(), owner: ti.types.ndarray(), strict:
 
 
 def _triangle_frames(vertices, faces, uv, size):
-    """Per triangle: grid coords (F, 3, 2), dP/dx and dP/dy (F, 3) in mm per texel, validity (F,)."""
+    """Per triangle: grid coords (F, 3, 2), dP/dx and dP/dy (F, 3) in mm per texel, validity (F,).
+
+    Valid: a UV area above 1e-9 texel^2 and texels within the shape limits (_MIN_SIDE_FRACTION, _MAX_TEXEL_ASPECT;
+    a triangle with zero area in 3D has a zero shortest side)."""
     tri_xy = _grid_coords(uv[faces], size)
     tri_p = vertices[faces]
     d1, d2 = tri_xy[:, 1] - tri_xy[:, 0], tri_xy[:, 2] - tri_xy[:, 0]
     e1, e2 = tri_p[:, 1] - tri_p[:, 0], tri_p[:, 2] - tri_p[:, 0]
     det = d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0]
-    area_3d = 0.5 * np.linalg.norm(np.cross(e1, e2), axis=1)
-    scale = max(np.median(area_3d[area_3d > 0]) if (area_3d > 0).any() else 1.0, 1e-30)
-    valid = (np.abs(det) > 1e-9) & (area_3d > 1e-9 * scale) & np.isfinite(det)
-    safe = np.where(valid, det, 1.0)
+    mapped = (np.abs(det) > 1e-9) & np.isfinite(det)
+    safe = np.where(mapped, det, 1.0)
     # [e1 e2] = [Px Py] [[d1x d2x], [d1y d2y]]  ->  solve for Px, Py
     px = (e1 * d2[:, 1:2] - e2 * d1[:, 1:2]) / safe[:, None]
     py = (e2 * d1[:, 0:1] - e1 * d2[:, 0:1]) / safe[:, None]
+    shortest, longest = _texel_sides(px, py)
+    floor = _MIN_SIDE_FRACTION * (np.median(shortest[mapped]) if mapped.any() else 0.0)
+    valid = mapped & (shortest > 0.0) & (shortest >= floor) & (longest <= _MAX_TEXEL_ASPECT * shortest)
     return tri_xy, px, py, valid
+
+
+def _texel_sides(px: np.ndarray, py: np.ndarray):
+    """Shortest and longest side (mm) of texels spanned by dP/dx, dP/dy (N, 3): the singular values of [px py]."""
+    g11, g22, g12 = (px * px).sum(axis=1), (py * py).sum(axis=1), (px * py).sum(axis=1)
+    trace, det = g11 + g22, np.maximum(g11 * g22 - g12**2, 0.0)
+    longest = np.sqrt(0.5 * (trace + np.sqrt(np.maximum(trace**2 - 4.0 * det, 0.0))))
+    return np.sqrt(det) / np.maximum(longest, 1e-300), longest
 
 
 def _rasterise(vertices, faces, uv, size):
@@ -242,8 +323,7 @@ def _texel_maps(vertices, faces, uv, owner, size, uv_source) -> TissueSurface:
     normal = np.where(length > 1e-6, normal / np.maximum(length, 1e-30), face_normal)
     texel_area = np.linalg.norm(np.cross(px[f], py[f]), axis=1)
 
-    keep = texel_area > _DEGENERATE_AREA_FRACTION * (np.median(texel_area) if len(texel_area) else 0.0)
-    keep &= np.isfinite(position).all(axis=1) & np.isfinite(normal).all(axis=1)
+    keep = np.isfinite(position).all(axis=1) & np.isfinite(normal).all(axis=1)
     rows, cols, f = rows[keep], cols[keep], f[keep]
     if len(rows) == 0:
         raise MeshError(f"the mesh covers no texel of a {size}x{size} texture")

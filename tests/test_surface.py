@@ -1,4 +1,6 @@
-"""Texel maps: UV use or xatlas atlas, mesh formats, degenerate triangles."""
+"""Texel maps: UV use or xatlas atlas, mesh formats, degenerate triangles, vertex checks."""
+import re
+
 import numpy as np
 import pytest
 import trimesh
@@ -71,3 +73,41 @@ def test_unreadable_mesh_raises_mesh_error(tmp_path):
     path.write_text("this is not a mesh\n")
     with pytest.raises(MeshError):
         build_surface(load_mesh(path), 32)
+
+
+@pytest.mark.parametrize("x0, message", [(np.nan, "1 of 42 vertices are not finite"), (1e39, "1e+39 mm found")])
+def test_vertices_not_finite_or_far_out_raise_before_xatlas(x0, message):
+    """A mesh without UVs goes to xatlas, which never returned on a vertex at 1e39 and unwrapped one at NaN."""
+    sphere = trimesh.creation.icosphere(subdivisions=1, radius=5.0)
+    vertices = sphere.vertices.copy()
+    vertices[0, 0] = x0
+    with pytest.raises(MeshError, match=re.escape(message)):
+        build_surface(trimesh.Trimesh(vertices, sphere.faces, process=False), 32)
+
+
+def test_a_sliver_triangle_is_skipped():
+    """A triangle 10 mm long and 1e-3 mm wide with a full-size UV triangle: its texels would be 1e4 times longer
+    than wide (and ask 44,610 heat substeps per step); it is skipped, the plane keeps all its texels."""
+    plane = plane_mesh(20.0, 20.0, cells=8)
+    n = len(plane.vertices)
+    vertices = np.vstack([plane.vertices, [[30.0, 0.0, 0.0], [40.0, 0.0, 0.0], [35.0, 1e-3, 0.0]]])
+    uv = np.vstack([plane.visual.uv * 0.9, [[0.92, 0.1], [0.98, 0.1], [0.95, 0.16]]])
+    mesh = trimesh.Trimesh(vertices, np.vstack([plane.faces, [[n, n + 1, n + 2]]]), visual=trimesh.visual.TextureVisuals(uv=uv), process=False)
+    surface = build_surface(mesh, 64)
+    alone = build_surface(trimesh.Trimesh(plane.vertices, plane.faces, visual=trimesh.visual.TextureVisuals(uv=plane.visual.uv * 0.9), process=False), 64)
+    assert surface.uv_source == "mesh" and surface.skipped_triangles == 1
+    assert np.array_equal(surface.mask, alone.mask) and surface.area_mm2 == alone.area_mm2
+
+
+def test_uvs_stretched_beyond_the_aspect_limit_get_an_xatlas_atlas():
+    """UVs squeezed 30:1 make texels 30 times longer than wide: the atlas replaces them."""
+    mesh = plane_mesh(20.0, 20.0, cells=8)
+    mesh.visual = trimesh.visual.TextureVisuals(uv=mesh.visual.uv * [1.0 / 30.0, 1.0])
+    surface = build_surface(mesh, 64)
+    assert surface.uv_source == "xatlas" and surface.area_mm2 == pytest.approx(400.0, rel=0.05)
+
+
+def test_a_mesh_in_metres_gets_a_size_warning():
+    assert build_surface(plane_mesh(0.06, 0.04), 32).size_warning == \
+        "mesh is 0.0721 mm across: is it in metres? lengths are in millimetres"
+    assert build_surface(plane_mesh(60.0, 40.0), 32).size_warning is None

@@ -1,0 +1,222 @@
+"""Headless runs against bad geometry, absurd substep counts, Ctrl-C, failed writes and a corrupt atlas cache."""
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+from sims.cautery import MAX_SUBSTEPS
+from sims.config import REPO_ROOT
+from tests.helpers import plane_mesh
+from lab.__main__ import main
+from tests.test_cli import bad, run_cli, write_scene
+
+
+def write_obj(path: Path, vertices, faces, uv=None) -> Path:
+    """A plain OBJ (1-based faces; `vt` and v/vt faces when uv is given), written exactly as given."""
+    lines = [f"v {x!r} {y!r} {z!r}" for x, y, z in np.asarray(vertices, np.float64).tolist()]
+    if uv is not None:
+        lines += [f"vt {u!r} {v!r}" for u, v in np.asarray(uv, np.float64).tolist()]
+    for face in np.asarray(faces) + 1:
+        lines.append("f " + " ".join(f"{i}/{i}" if uv is not None else str(i) for i in face))
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def mesh_scene(tmp_path: Path, mesh_path: Path, **changes) -> Path:
+    return write_scene(tmp_path, bad({"mesh": str(mesh_path), **changes}))
+
+
+def outputs(folder: Path) -> dict:
+    """Every file under folder: relative path -> bytes."""
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def leftovers(out: Path) -> list[str]:
+    """Temporary folders of runs into `out` still beside it."""
+    return sorted(p.name for p in out.parent.iterdir() if p.name.startswith(f".{out.name}."))
+
+
+def sphere_obj(tmp_path: Path, x0) -> Path:
+    """An icosphere of radius 5 mm without UVs (so it goes to xatlas), its first vertex at x = x0."""
+    sphere = trimesh.creation.icosphere(subdivisions=1, radius=5.0)
+    vertices = sphere.vertices.copy()
+    vertices[0, 0] = x0
+    return write_obj(tmp_path / "sphere.obj", vertices, sphere.faces)
+
+
+def test_vertex_at_1e39_is_refused_at_once_in_a_real_process(tmp_path):
+    """Before the check xatlas never returned on this mesh (float32 infinity)."""
+    path = mesh_scene(tmp_path, sphere_obj(tmp_path, 1e39))
+    start = time.perf_counter()
+    result = subprocess.run([sys.executable, "-m", "lab", "run", str(path), "--out", str(tmp_path / "out"), "--quiet"],
+                            capture_output=True, text=True, cwd=REPO_ROOT, timeout=120)
+    assert result.returncode == 2, result.stderr
+    assert result.stderr.strip().splitlines() == [result.stderr.strip()] and "Traceback" not in result.stderr
+    assert result.stderr.startswith(f"error: {path}: mesh: {tmp_path / 'sphere.obj'}: ")
+    assert "1e+39 mm found; meshes are in millimetres" in result.stderr
+    assert time.perf_counter() - start < 60 and not (tmp_path / "out").exists()
+
+
+def test_non_finite_vertex_is_refused_in_one_line(tmp_path, capsys):
+    path = mesh_scene(tmp_path, sphere_obj(tmp_path, float("nan")))
+    code, lines = run_cli(capsys, path, "--out", tmp_path / "out")
+    assert code == 2 and len(lines) == 1
+    assert lines[0].startswith(f"error: {path}: mesh: ") and "1 of 42 vertices are not finite" in lines[0]
+
+
+def sliver_plane(tmp_path: Path, width_mm: float) -> Path:
+    """A 20 x 20 mm plane (UVs in [0, 0.9]^2) plus one triangle 10 mm long and width_mm wide with its own
+    full-size UV triangle in the free strip: texels width_mm / 10 as wide as long."""
+    plane = plane_mesh(20.0, 20.0, cells=8)
+    n = len(plane.vertices)
+    vertices = np.vstack([plane.vertices, [[30.0, 0.0, 0.0], [40.0, 0.0, 0.0], [35.0, width_mm, 0.0]]])
+    uv = np.vstack([plane.visual.uv * 0.9, [[0.92, 0.1], [0.98, 0.1], [0.95, 0.16]]])
+    return write_obj(tmp_path / "sliver.obj", vertices, np.vstack([plane.faces, [[n, n + 1, n + 2]]]), uv)
+
+
+def test_one_sliver_triangle_does_not_drive_the_substeps_up(tmp_path, capsys):
+    """Before: 44,610 substeps per 0.01 s step at 64^2 (447 for a 1e-2 mm wide one); the plane alone needs 1."""
+    path = mesh_scene(tmp_path, sliver_plane(tmp_path, 1e-3), duration_s=0.02)
+    code, lines = run_cli(capsys, path, "--out", tmp_path / "out")
+    assert code == 0, lines
+    substeps = json.loads((tmp_path / "out" / "metrics.json").read_text())["cautery"]["heat_substeps_per_step"]
+    assert substeps == 1 <= MAX_SUBSTEPS
+
+
+def test_more_substeps_than_the_cap_is_refused_in_one_line(tmp_path, capsys):
+    """A 2 mm plane at 64^2 texels (0.03 mm), k = 5 W/(m K), dt = 0.05 s: about 500 explicit substeps per step
+    (the implicit scheme runs such texels: test_mesh_in_metres_warns_with_its_size)."""
+    mesh = write_obj(tmp_path / "small.obj", *(lambda m: (m.vertices, m.faces, m.visual.uv))(plane_mesh(2.0, 2.0)))
+    path = mesh_scene(tmp_path, mesh, duration_s=0.1, time_step_s=0.05, tissue={"preset": "liver", "conductivity_w_mk": 5.0})
+    code, lines = run_cli(capsys, path, "--out", tmp_path / "out")
+    assert code == 2 and len(lines) == 1, lines
+    assert lines[0].startswith(f"error: {path}: cautery.scheme: the explicit heat scheme needs ")
+    assert f"over the cap of {MAX_SUBSTEPS}" in lines[0] and "use cautery.scheme=implicit" in lines[0]
+    assert not (tmp_path / "out").exists() and not leftovers(tmp_path / "out")
+
+
+def test_mesh_in_metres_warns_with_its_size(tmp_path, capsys):
+    """The patch's 60 x 40 mm written in metres; the implicit scheme runs it (the explicit one is refused, as above)."""
+    plane = plane_mesh(0.06, 0.04)
+    path = mesh_scene(tmp_path, write_obj(tmp_path / "metres.obj", plane.vertices, plane.faces, plane.visual.uv),
+                      duration_s=0.02, cautery={"scheme": "implicit"})
+    code, lines = run_cli(capsys, path, "--out", tmp_path / "out")
+    assert code == 0
+    assert lines == [f"warning: {path}: mesh: mesh is 0.0721 mm across: is it in metres? lengths are in millimetres"]
+    assert json.loads((tmp_path / "out" / "metrics.json").read_text())["cautery"]["heat_substeps_per_step"] == 1
+
+
+def test_truncated_atlas_cache_entry_is_recomputed(tmp_path, monkeypatch):
+    from sims.surface import build_surface
+
+    monkeypatch.setenv("TISSUE_LAB_CACHE", str(tmp_path / "cache"))
+    sphere = trimesh.creation.icosphere(subdivisions=1, radius=5.0)
+    first = build_surface(sphere, 32)
+    [entry] = (tmp_path / "cache" / "atlas").iterdir()
+    entry.write_bytes(entry.read_bytes()[:100])  # what a run killed while writing used to leave
+    again = build_surface(sphere, 32)
+    assert np.array_equal(again.uv, first.uv) and np.array_equal(again.faces, first.faces)
+    assert [p.name for p in (tmp_path / "cache" / "atlas").iterdir()] == [entry.name]
+    with np.load(entry) as data:
+        assert np.array_equal(data["uv"].astype(np.float32), first.uv)
+
+
+def test_a_failed_atlas_cache_write_leaves_no_entry(tmp_path, monkeypatch):
+    from sims.surface import build_surface
+
+    monkeypatch.setenv("TISSUE_LAB_CACHE", str(tmp_path / "cache"))
+
+    def failing_savez(file, **arrays):
+        (open(file, "wb") if isinstance(file, (str, Path)) else file).write(b"PK\x03\x04 half an entry")
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(np, "savez", failing_savez)
+    with pytest.raises(OSError):
+        build_surface(trimesh.creation.icosphere(subdivisions=1, radius=5.0), 32)
+    assert list((tmp_path / "cache" / "atlas").iterdir()) == []
+
+
+@pytest.fixture(scope="module")
+def previous_run(tmp_path_factory):
+    """(scene file, the folder of a complete run of it): 32^2 texels, 1000 s long unless --duration says less."""
+    folder = tmp_path_factory.mktemp("previous")
+    path = write_scene(folder, bad({"texture_size": 32, "duration_s": 1000.0}))
+    assert main(["run", str(path), "--out", str(folder / "out"), "--duration", "0.1", "--frames-every", "0.05", "--quiet"]) == 0
+    return path, folder / "out"
+
+
+def copy_of(previous_run, tmp_path: Path):
+    """The scene file, a copy of the previous run's folder at tmp_path / "out", and that folder's files."""
+    path, folder = previous_run
+    out = tmp_path / "out"
+    shutil.copytree(folder, out)
+    return path, out, outputs(out)
+
+
+def test_a_failed_write_leaves_the_previous_outputs(tmp_path, capsys, monkeypatch, previous_run):
+    from lab import runner
+
+    path, out, before = copy_of(previous_run, tmp_path)
+
+    def no_space(*_):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(runner, "save_npz_atomic", no_space)  # after frames and final.png are written
+    code, lines = run_cli(capsys, path, "--out", out, "--duration", "0.2", "--frames-every", "0.05")
+    assert code == 2 and lines == [f"error: {out}: --out: cannot write outputs: No space left on device"]
+    assert outputs(out) == before and not leftovers(out)
+
+
+def test_ctrl_c_in_process_exits_130_and_keeps_the_previous_outputs(tmp_path, capsys, monkeypatch, previous_run):
+    from sims.scene import Scene
+
+    path, out, before = copy_of(previous_run, tmp_path)
+    original_step = Scene.step
+
+    def interrupted_step(scene):
+        if scene.steps == 3:
+            raise KeyboardInterrupt
+        original_step(scene)
+
+    monkeypatch.setattr(Scene, "step", interrupted_step)
+    code, lines = run_cli(capsys, path, "--out", out, "--frames-every", "0.01")
+    assert code == 130 and lines == [f"interrupted at t = 0.03 s; previous outputs in {out} kept"]
+    assert outputs(out) == before and not leftovers(out)
+
+
+def test_new_output_folder_with_foreign_files_is_refused(tmp_path, capsys):
+    path, out = write_scene(tmp_path), tmp_path / "out"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    code, lines = run_cli(capsys, path, "--out", out)
+    assert code == 2 and len(lines) == 1
+    assert lines[0].startswith(f"error: {out}: --out: cannot write outputs: holds files a run does not write (notes.txt)")
+    assert [p.name for p in out.iterdir()] == ["notes.txt"] and not leftovers(out)
+
+
+def test_sigint_to_a_real_run_exits_130_and_keeps_the_previous_outputs(tmp_path, previous_run):
+    path, out, before = copy_of(previous_run, tmp_path)
+    process = subprocess.Popen([sys.executable, "-m", "lab", "run", str(path), "--out", str(out), "--frames-every", "0.05", "--quiet"],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO_ROOT)
+    try:
+        deadline = time.monotonic() + 120
+        while not list(tmp_path.glob(".out.*/frames/frame_00001.png")):  # stepping has started
+            assert process.poll() is None and time.monotonic() < deadline, "the run ended or never started stepping"
+            time.sleep(0.05)
+        process.send_signal(signal.SIGINT)
+        _, stderr = process.communicate(timeout=60)
+    finally:
+        if process.poll() is None:
+            os.kill(process.pid, signal.SIGKILL)
+    assert process.returncode == 130, stderr
+    assert "Traceback" not in stderr
+    assert stderr.strip().splitlines()[-1].endswith(f"s; previous outputs in {out} kept")
+    assert outputs(out) == before and not leftovers(out)

@@ -8,11 +8,15 @@ WebGL through SwiftShader, as in the tests; never a downloaded browser) shows it
 1. Stream: the scene's scripted demo from t = 0 for --seconds. Server side, every texture update is logged (tiles and
    bytes handed to viser); browser side, every frame the page draws is captured (DevTools screencast), and frames
    whose pixels changed are counted.
-2. Latency: the scripted paths stopped, the ball electrode is set from Python (energized, 250 C, 0.3 mm into the
-   tissue) onto a fresh spot; the time until the spot changes visibly in the screencast (mean colour of a 2 x 2 mm
-   square off by more than 25 levels from before the move) is taken, --tries spots, median. The instrument's model
-   is hidden during this part, so that it does not cover the spot. Also logged: when the composite texture on the
-   server first showed the change (simulation + compose), so the rest is transport and drawing.
+2. Latency: every tool taken over by hand where it is (its script stops) and switched off, then the ball electrode
+   placed through the session (energized, 250 C, 0.3 mm into the tissue) onto a fresh spot; the time until the spot
+   changes visibly in the screencast (mean colour of a 2 x 2 mm square off by more than 25 levels from before the
+   move) is taken, --tries spots, median. The instruments' models and gizmos are hidden during this part, so that
+   they do not cover the spot. Also logged: when the composite texture on the server first showed the change
+   (simulation + compose), and the first stream update after that which published tiles (the stream publishes the
+   tiles that changed most first, so a fresh burn's tile is among them; the stream has no public per-tile record).
+Everything goes through the lab's public API (lab.session.LabSession commands, LabApp.tool_views, the stream's
+`update` and `stats`); the only probe is a wrapper around the app's `stream.update` that logs each texture update.
 Results: a table on stdout and OUT/results.json.
 """
 from __future__ import annotations
@@ -45,6 +49,8 @@ HIDE_NOTICE_JS = """() => {
   while (node && node.getAttribute && node.getAttribute('role') !== 'alert') node = node.parentElement;
   if (node || title) (node || title.parentElement.parentElement).style.display = 'none';
 }"""
+TIP_TEMPERATURE_C = 250.0  # of the electrode placed for the latency
+PRESS_MM = 0.3            # its ball centre this far into the tissue along the normal
 SHOT_LOOK_AT_MM, SHOT_FROM = (0.0, 3.0, 1.0), (0.0, -26.0, 40.0)   # the screenshot's camera: target, offset (mm)
 
 
@@ -109,7 +115,7 @@ def decode(data: bytes) -> np.ndarray:
 
 
 def measure_stream(app, totals, chrome, viewer, seconds: float) -> dict:
-    app.commands.put(app.scene.reset)
+    app.session.reset()  # applied by the loop's first tick
     start = time.monotonic()
     cast = chrome.submit(lambda _: start_cast(viewer)).result(timeout=30)
     run_while(app, chrome.submit(lambda _: pump(viewer, seconds)), timeout_s=seconds + 60)
@@ -135,14 +141,21 @@ def measure_stream(app, totals, chrome, viewer, seconds: float) -> dict:
     }
 
 
-def measure_latency(app, log, chrome, viewer, tries: int) -> dict:
-    from sims.instruments import Pose
+def hold_every_tool(app) -> None:
+    """Every tool taken over by hand where it is now (its script stops) and switched off."""
+    for tool in app.scene.instruments:
+        pose = tool.pose_at(app.scene.time_s)
+        app.session.take_over(tool.name, pose.position_mm, pose.direction, pose.roll_deg)
+        app.session.set_energized(tool.name, False)
 
-    app.commands.put(lambda: app._set_demo(False))  # scripted paths stop; tools stay where they are
-    for name in app.tool_meshes:
-        app.tool_meshes[name].visible = False
-        app.tool_gizmos[name].visible = False
+
+def measure_latency(app, log, chrome, viewer, tries: int) -> dict:
+    hold_every_tool(app)
+    for view in app.tool_views.values():
+        view["body"].visible = False
+        view["gizmo"].visible = False
     tool = app.scene.instruments[0]
+    app.session.set_parameter(f"instruments.{tool.name}.tip_temperature_c", TIP_TEMPERATURE_C)
     radius = tool.shape["radius_mm"]
     surface = app.scene.surface
     client = the_client(app, chrome, viewer)
@@ -170,11 +183,10 @@ def measure_latency(app, log, chrome, viewer, tries: int) -> dict:
         before = browser.region(image.astype(np.float32), centre, half).reshape(-1, 3).mean(axis=0)
         texel_before = texture_square(log[-1][4], row, col)
         seen = {}
-        tiles = [tile for tile in app.stream._tiles if tile.geometry.r0 <= row < tile.geometry.r1 and tile.geometry.c0 <= col < tile.geometry.c1]
 
         def changed():
-            if "texture" in seen and "sent" not in seen:  # the stream sent a tile holding the spot (after the rate limit)
-                sent = [tile.sent_at for tile in tiles if tile.sent_at >= seen["texture"]]
+            if "texture" in seen and "sent" not in seen:  # the first update since the change that published tiles
+                sent = [t for t, tiles_sent, _, _, _ in list(log) if t >= seen["texture"] and tiles_sent > 0]
                 if sent:
                     seen["sent"] = min(sent)
             if "texture" not in seen:
@@ -191,19 +203,19 @@ def measure_latency(app, log, chrome, viewer, tries: int) -> dict:
                     return True
             return False
 
-        pose = Pose(point + normal * (radius - 0.3), -normal, 0.0, True, 250.0)
         seen["t0"] = time.monotonic()
-        app.commands.put(lambda pose=pose: setattr(tool, "override", pose))
+        app.session.take_over(tool.name, point + normal * (radius - PRESS_MM), -normal)
+        app.session.set_energized(tool.name, True)
         stop = threading.Event()
         job = chrome.submit(lambda _: pump(viewer, 20.0, stop))
         app.run(until=lambda: changed() or job.done(), timeout_s=25)
         stop.set()
         job.result(timeout=30)
-        lifted = Pose(point + normal * 15.0, -normal, 0.0, False, 250.0)
-        app.commands.put(lambda pose=lifted: setattr(tool, "override", pose))
+        app.session.take_over(tool.name, point + normal * 15.0, -normal)  # lifted off
+        app.session.set_energized(tool.name, False)
         results.append({"spot_mm": [x_mm, y_mm], "visible_s": seen.get("visible", float("nan")) - seen["t0"],
                         "texture_s": seen.get("texture", float("nan")) - seen["t0"], "sent_s": seen.get("sent", float("nan")) - seen["t0"]})
-        print(f"  spot {x_mm:+.0f},{y_mm:+.0f} mm: texture changed after {results[-1]['texture_s']:.2f} s, its tile sent after "
+        print(f"  spot {x_mm:+.0f},{y_mm:+.0f} mm: texture changed after {results[-1]['texture_s']:.2f} s, tiles published after "
               f"{results[-1]['sent_s']:.2f} s, visible in the browser after {results[-1]['visible_s']:.2f} s", flush=True)
     chrome.submit(lambda _: cast.stop()).result(timeout=30)
     visible = [r["visible_s"] for r in results if np.isfinite(r["visible_s"])]
@@ -244,18 +256,19 @@ def screenshot(path: Path, args, chrome) -> None:
         look_at = np.array(SHOT_LOOK_AT_MM)
         client.camera.look_at = tuple(look_at)
         client.camera.position = tuple(look_at + np.array(SHOT_FROM))
-        app.commands.put(app.scene.reset)
+        app.session.reset()
         run_while(app, chrome.submit(lambda _: pump(viewer, 0.5)), until=lambda: app.scene.time_s >= args.shot_at_s, timeout_s=120)
         app.set_running(False)
 
         def shot(_):
             page = viewer.page
             page.evaluate(HIDE_NOTICE_JS)  # the "software WebGL" notice, which only this machine gets
-            page.get_by_text("Instruments", exact=True).click()  # folded, so that the stats show below
+            # folded, so that the stats show below (a click waits for the page to draw it still: slow in software WebGL)
+            page.get_by_text("Instruments", exact=True).click(timeout=300_000)
             pump(viewer, 6.0)  # every tile of the paused texture arrives
-            return page.screenshot(type="png", timeout=120_000)
+            return page.screenshot(type="png", timeout=300_000)
 
-        png = run_while(app, chrome.submit(shot))
+        png = run_while(app, chrome.submit(shot), timeout_s=900)
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_bytes(png)
         print(f"saved {path} (scene paused at t = {app.scene.time_s:.2f} s)")
@@ -292,7 +305,7 @@ def main() -> int:
         chrome.close()
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "results.json").write_text(json.dumps(results, indent=2))
-    print("\n| texels | updates/s with tiles | tiles per update | kB per update | kB/s | browser frames/s (changed) | steps/s | move to visible burn: median (range) | texture changed, tile sent (medians) |")
+    print("\n| texels | updates/s with tiles | tiles per update | kB per update | kB/s | browser frames/s (changed) | steps/s | move to visible burn: median (range) | texture changed, tiles published (medians) |")
     print("|---|---|---|---|---|---|---|---|---|")
     for r in results:
         s, lat = r["stream"], r["latency"]

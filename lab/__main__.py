@@ -27,6 +27,9 @@ def build_parser() -> argparse.ArgumentParser:
     serve.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1: this machine only)")
     serve.add_argument("--port", type=int, default=8080)
     serve.add_argument("--arch", choices=ARCH_CHOICES, default="auto", help="Taichi device: auto (GPU if present, else CPU), cpu or gpu")
+    serve.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a scene key, as for run (kept over rebuilds)")
+    serve.add_argument("--allow-origin", action="append", default=[], metavar="URL",
+                       help="a web origin besides the lab's own whose pages may connect, e.g. https://lab.example.org behind a reverse proxy")
     run = commands.add_parser("run", help="run a scene headless and write metrics.json, final.png, state.npz")
     run.add_argument("scene", help="scene YAML file")
     run.add_argument("--out", required=True, help="output folder")
@@ -86,7 +89,7 @@ def _serve(args) -> int:
     from lab import app
 
     try:
-        app.serve(args.scene, args.host, args.port, args.arch)
+        app.serve(args.scene, args.host, args.port, args.arch, overrides=args.set, allowed_origins=args.allow_origin)
     except OSError as exc:
         print(f"error: --port {args.port}: cannot serve on {args.host}: {exc.strerror or exc}", file=sys.stderr)
         return 2

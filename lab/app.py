@@ -404,6 +404,8 @@ class LabApp:
         self._show("running", session.running, lambda running: setattr(self.pause_button, "label", "Pause" if running else "Resume"))
         if scene.bleeding is not None:
             self._sync_points()
+        for key, handle in self.sliders.items():  # values the session changed (reset to defaults, a refusal)
+            self._show(("slider", key), session.parameter_value(key), lambda value, h=handle: setattr(h, "value", value))
 
     def _sync_points(self) -> None:
         """A red marker with a gizmo and a folder of sliders for every bleed point; gone when the point is."""

@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from lab.runner import check_scene
 from sims import backend, params
 from sims.config import REPO_ROOT, ConfigError, load_scene_config, parse_override
 from sims.instruments import Instrument, Pose
@@ -335,11 +336,22 @@ class LabSession:
         change(self.scene)
 
     def _apply_parameters(self) -> None:
+        """Apply the latest value of each live parameter; one that would take the explicit heat scheme past its
+        substep cap (sims.cautery.MAX_SUBSTEPS) is put back and refused."""
         with self._lock:
             pending, self._pending_parameters = self._pending_parameters, {}
         for key, value in pending.items():
-            if key in self.scene.parameters():  # a rebuild may have dropped it
-                self.overrides.update(self.scene.set_parameter(key, value))
+            if key not in self.scene.parameters():  # a rebuild may have dropped it
+                continue
+            old = self.scene.parameter_value(key)
+            changed = self.scene.set_parameter(key, value)
+            try:
+                check_scene(self.scene)
+            except ConfigError as exc:
+                self.scene.set_parameter(key, old)
+                self.notice = f"refused: {key} = {value:g}: {exc.message}"
+                continue
+            self.overrides.update(changed)
 
     def _apply_placements(self) -> None:
         with self._lock:
@@ -434,6 +446,7 @@ class LabSession:
             backend.shutdown()  # its fields are gone: only the simulation thread touches fields, after this build
         try:
             scene = Scene(config, self.arch, inputs)
+            check_scene(scene)
         except Exception as exc:  # whatever failed, the old scene is gone: the last good one comes back from memory
             if first:
                 raise

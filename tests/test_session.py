@@ -178,6 +178,22 @@ def test_values_that_are_not_finite_numbers_are_refused_and_the_simulation_goes_
     session.set_parameter("tissue.conductivity_w_mk", 0.52)
 
 
+def test_a_live_change_past_the_heat_substep_cap_is_put_back(session, monkeypatch):
+    import sims.cautery
+
+    restart(session)
+    before = session.scene.config["tissue"]["conductivity_w_mk"]
+    overrides = dict(session.overrides)
+    monkeypatch.setattr(sims.cautery, "MAX_SUBSTEPS", session.scene.cautery.explicit_substeps(0.01) - 1)  # a cap already reached
+    session.set_parameter("tissue.conductivity_w_mk", 5.0)
+    session.tick()
+    assert session.scene.config["tissue"]["conductivity_w_mk"] == before and "substeps" in session.notice
+    assert session.overrides == overrides
+    monkeypatch.undo()
+    steps = session.scene.steps
+    run_until(session, lambda: session.scene.steps > steps + 5)
+
+
 def test_no_file_outside_the_scenes_folder_is_opened_for_a_scene_switch(session, tmp_path):
     fifo = tmp_path / "scene.yaml"
     os.mkfifo(fifo)

@@ -404,8 +404,11 @@ class LabApp:
         self._show("running", session.running, lambda running: setattr(self.pause_button, "label", "Pause" if running else "Resume"))
         if scene.bleeding is not None:
             self._sync_points()
-        for key, handle in self.sliders.items():  # values the session changed (reset to defaults, a refusal)
-            self._show(("slider", key), session.parameter_value(key), lambda value, h=handle: setattr(h, "value", value))
+
+    def _sync_sliders(self) -> None:
+        """Slider values the session changed itself (reset to defaults, a refused change put back)."""
+        for key, handle in self.sliders.items():
+            self._show(("slider", key), self.session.parameter_value(key), lambda value, h=handle: setattr(h, "value", value))
 
     def _sync_points(self) -> None:
         """A red marker with a gizmo and a folder of sliders for every bleed point; gone when the point is."""
@@ -464,6 +467,7 @@ class LabApp:
             text = ("no tissue along its axis" if clearance is None else
                     f"{clearance:.1f} mm above the tissue" if clearance > 0.05 else f"touching the tissue, {-clearance:.2f} mm in")
             self._show(("distance", name), text, lambda text, h=view["distance"]: setattr(h, "content", text))
+        self._sync_sliders()
         self.history.append((scene.time_s, max_t, blood))
         self.history = [row for row in self.history if scene.time_s - PLOT_SECONDS <= row[0] <= scene.time_s]  # (after a reset too)
         self.plot.data = tuple(np.array([row[column] for row in self.history], np.float64) for column in self.plot_columns)

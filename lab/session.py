@@ -138,8 +138,9 @@ class LabSession:
         with self._lock:
             if key in self._pending_parameters:
                 return self._pending_parameters[key]
-        if key in self.parameters() and not self.parameters()[key].live and self.parameters()[key].config_key in self.overrides:
-            return self.overrides[self.parameters()[key].config_key]
+        parameter = self.parameters().get(key)
+        if parameter is not None and not parameter.live and parameter.config_key in self.overrides:
+            return self.overrides[parameter.config_key]
         return self.scene.parameter_value(key)
 
     @property

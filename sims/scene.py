@@ -144,6 +144,7 @@ class Scene:
         self.instruments = [Instrument.from_config(item) for item in config["instruments"]]
         self.cautery = self.bleeding = None
         self.bleed_points = []
+        self._parameters = None  # (tool and point names, parameter table) made by parameters()
         if "cautery" in self.models:
             from sims.cautery import Cautery
             from sims.instruments import InstrumentFields
@@ -213,7 +214,14 @@ class Scene:
     def parameters(self) -> dict[str, SceneParameter]:
         """Every number this scene offers to change, by key: `time_step_s`, `tissue.<name>`, `cautery.<name>`,
         `bleeding.<name>`, `instruments.<tool>.tip_temperature_c`, `instruments.<tool>.shape.<name>`,
-        `instruments.<tool>.suction.<name>`, `bleed_points.<point>.<name>` (tools and points by name)."""
+        `instruments.<tool>.suction.<name>`, `bleed_points.<point>.<name>` (tools and points by name). The table is
+        made again only when a tool or a bleed point comes or goes."""
+        layout = (tuple(tool.name for tool in self.instruments), tuple(point.name for point in self.bleed_points))
+        if self._parameters is None or self._parameters[0] != layout:
+            self._parameters = (layout, self._parameter_table())
+        return self._parameters[1]
+
+    def _parameter_table(self) -> dict[str, SceneParameter]:
         table = {}
         for group, specs, model, rebuild in _MODEL_GROUPS:
             if model is not None and model not in self.models:

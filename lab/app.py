@@ -108,7 +108,9 @@ class LabApp:
         the scene waits at t = 0 until the first browser connects. allowed_origins: web origins besides the server's
         own that may connect (e.g. a reverse proxy's, "https://lab.example.org")."""
         from lab.origin import refuse_foreign_origins
+        from lab.viser_threads import make_sends_thread_safe
 
+        make_sends_thread_safe()  # the simulation thread sends tiles and poses
         self.server = viser.ViserServer(host=host, port=port, verbose=False)
         refuse_foreign_origins(self.server, allowed_origins)
         self.simple_lighting = False
@@ -497,10 +499,10 @@ class LabApp:
         steps = updates = sent = 0
         while not self.stop_event.is_set():
             now = time.perf_counter()
-            if until is not None and now - last_check >= 0.05:
+            if now - last_check >= 0.05:
                 last_check = now
                 try:
-                    if until():
+                    if until is not None and until():
                         return True
                 except Exception as exc:
                     raise UntilFailed() from exc

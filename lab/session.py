@@ -360,10 +360,13 @@ class LabSession:
         for tool, (position, direction, roll) in pending.items():
             if tool not in {item.name for item in self.scene.instruments}:
                 continue
-            if tool in self.resting:
-                self.scene.rest_on_tissue(tool, position, REST_DEPTH_MM, direction)
-            else:
-                self.scene.take_over(tool, position, direction, roll)
+            try:
+                if tool in self.resting:
+                    self.scene.rest_on_tissue(tool, position, REST_DEPTH_MM, direction)
+                else:
+                    self.scene.take_over(tool, position, direction, roll)
+            except Refused as exc:  # (checked when queued; a rebuild may have moved the tissue) the others still move
+                self.notice = f"refused: {exc}"
 
     def _rebuild_with(self, config_key: str, value) -> None:
         self.overrides[config_key] = value

@@ -217,12 +217,13 @@ def test_a_new_client_gets_every_tile_and_one_that_leaves_takes_its_nodes(server
     from lab.stream import TextureStream
 
     first, first_id = _connect(server)
-    stream = TextureStream(server, _patch(), tiles=TILES)
+    stream = TextureStream(server, _patch(), tiles=TILES, hide_after_s=600.0)  # replaced nodes stay for the test
     try:
         image = np.full((64, 64, 3), 100, np.uint8)
         stream.update(image)
         image[40:44, 10:14] = 200
-        stream.update(image)  # one tile replaced for the first client
+        # one tile replaced for the first client: it goes once that client has applied the tile's first node
+        _wait(lambda: stream.update(image) is not None and len(first.glbs) == TILES * TILES + 1, what="the replacement tile")
         second, second_id = _connect(server)
         stream.update(image)
         second.wait_for(lambda: len(second.glbs) >= TILES * TILES)

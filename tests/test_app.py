@@ -348,15 +348,19 @@ def test_one_click_on_the_tissue_after_add_bleed_point_adds_a_point_that_bleeds_
 
 @needs_chromium
 def test_rebuild_type_sliders_restart_the_scene_once_with_the_new_values(lab, chrome, page, hostile):
-    scene, builds = lab.scene, lab.session.builds
-    # in the browser: the texture size; the rebuild waits for REBUILD_DELAY_S of quiet
-    in_browser(lab, chrome, lambda _: enter(page.page, "Simulation", "texture_size (texels)", 96), until=lambda: lab.session.rebuild_pending)
+    builds = lab.session.builds
+    # in the browser: the texture size (the rebuild waits for REBUILD_DELAY_S of quiet after the change)
+    in_browser(lab, chrome, lambda _: enter(page.page, "Simulation", "texture_size (texels)", 96),
+               until=lambda: lab.session.builds > builds and not lab.session.rebuild_pending, timeout_s=120)
+    sized = lab.scene
+    run(lab, lambda: sized.time_s > 2 * 0.5)  # a second rebuild would have come by now
+    assert lab.session.builds == builds + 1 and sized.surface.mask.shape == (96, 96)
     for value in np.linspace(1.6, 2.4, 20):  # then a drag of the ball electrode's radius, from a second client
         hostile.set_gui_value(f"{BALL}: shape radius_mm (mm)", float(value))
-    run(lab, lambda: lab.session.builds > builds and not lab.session.rebuild_pending, timeout_s=120)
+    run(lab, lambda: lab.session.builds > builds + 1 and not lab.session.rebuild_pending, timeout_s=120)
     rebuilt = lab.scene
     run(lab, lambda: rebuilt.time_s > 2 * 0.5)  # a second rebuild would have come by now
-    assert lab.session.builds == builds + 1 and rebuilt is not scene
+    assert lab.session.builds == builds + 2 and rebuilt is not sized, "a drag of 20 values rebuilt more than once"
     assert rebuilt.surface.mask.shape == (96, 96) and rebuilt.composite().shape[:2] == (96, 96)
     assert rebuilt.instrument(BALL).shape["radius_mm"] == pytest.approx(2.4)
     # what was changed live before stays changed; the point added by clicking is there again

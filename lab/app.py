@@ -321,7 +321,7 @@ class LabApp:
         gizmo = self.server.scene.add_transform_controls(f"/tools/{name}", scale=8.0, position=tuple(pose.position_mm),
                                                          wxyz=self._gizmo_wxyz(name, pose), disable_rotations=not view["rotate"].value)
         view["gizmo"], view["gizmo_at"] = gizmo, None
-        gizmo.on_update(lambda event, n=name, g=gizmo: self._act(event, lambda: self._gizmo_moved(n, g), put_back=None))
+        gizmo.on_update(lambda event, n=name, g=gizmo: self._act(event, lambda: self._gizmo_moved(n, g)))
 
     def _gizmo_wxyz(self, name: str, pose) -> tuple:
         """The gizmo turns with the tool while rotation is allowed; otherwise its handles point along x, y and z."""

@@ -196,7 +196,7 @@ class LabSession:
         if not isinstance(name, str) or name not in self.scene_choices():
             raise Refused(f"scene {name!r}: not one of the scenes offered")
         path = self.scenes_dir / Path(name).name if name.startswith("scenes/") else self.scene_path
-        if path.resolve().parent != self.scenes_dir and path.resolve() != self.scene_path.resolve():
+        if path.resolve().parent != self.scenes_dir and path.resolve() != self.scene_path.resolve():  # a link out of scenes/
             raise Refused(f"scene {name!r}: not in {self.scenes_dir}")
         self._queue(lambda: self._switch(path))
 
@@ -250,13 +250,13 @@ class LabSession:
         self._check_tool(tool)
         if not isinstance(on, (bool, np.bool_)):
             raise Refused(f"{tool}: energized must be true or false")
-        self._queue(lambda: self._in_scene(lambda scene: scene.set_energized(tool, bool(on))))
+        self._queue(lambda: self.scene.set_energized(tool, bool(on)))
 
     def release(self, tool: str | None = None) -> None:
         """Back to the script: one tool, or every tool with None."""
         if tool is not None:
             self._check_tool(tool)
-        self._queue(lambda: self._in_scene(lambda scene: scene.release(tool)))
+        self._queue(lambda: self.scene.release(tool))
 
     def add_bleed_point(self, position_mm) -> None:
         """A bleed point with the default rate and radius at the surface texel nearest position_mm (MAX_BLEED_POINTS
@@ -283,7 +283,7 @@ class LabSession:
     def move_bleed_point(self, name: str, position_mm) -> None:
         position = self.scene.checked_position(position_mm, "position_mm")
         self.scene.bleed_point(name)
-        self._queue(lambda: self._in_scene(lambda scene: self.overrides.update(scene.move_bleed_point(name, position))))
+        self._queue(lambda: self.overrides.update(self.scene.move_bleed_point(name, position)))
 
     # --- the simulation thread --------------------------------------------------------------
     def tick(self) -> int:
@@ -332,9 +332,6 @@ class LabSession:
     def _check_tool(self, tool: str) -> None:
         if not isinstance(tool, str) or tool not in {item.name for item in self.scene.instruments}:
             raise Refused(f"no instrument {tool!r} in this scene")
-
-    def _in_scene(self, change) -> None:
-        change(self.scene)
 
     def _apply_parameters(self) -> None:
         """Apply the latest value of each live parameter; one that would take the explicit heat scheme past its

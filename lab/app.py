@@ -24,6 +24,7 @@ import trimesh
 import viser
 import viser.transforms as vtf
 
+from lab.section_view import section_image
 from lab.session import MAX_BLEED_POINTS, QUALITY, SPEED_RANGE, LabSession
 from lab.stream import TextureStream
 from sims import params
@@ -140,8 +141,10 @@ class LabApp:
                 self._notifications.append(client.add_notification("Building the scene", f"{name}: meshes, texel maps and kernels...",
                                                                    loading=True, with_close_button=False))
             else:
-                self._notifications.append(client.add_notification("Scene ready", f"{name} built in {seconds:.1f} s",
-                                                                   auto_close_seconds=4.0))
+                notes = "; ".join(self.session.scene.config.get("notes", ())) if self.session.scene is not None else ""
+                self._notifications.append(client.add_notification("Scene ready", f"{name} built in {seconds:.1f} s"
+                                                                   + (f". Note: {notes}" if notes else ""),
+                                                                   auto_close_seconds=12.0 if notes else 4.0))
 
     def _show_scene(self) -> None:
         """Stream, tools, markers and GUI for the session's scene (after every build)."""
@@ -224,6 +227,11 @@ class LabApp:
             self.bleed_folder = folder
             add.on_click(lambda event: self._act(event, lambda: setattr(self, "armed_click", True)))
             remove.on_click(lambda event: self._act(event, session.remove_bleed_point))
+        self.section_image, self.section_time = None, None
+        if self.scene.cautery is not None:
+            with gui.add_folder("Burn cross-section"):
+                self.section_text = gui.add_markdown("energize a tool: the cut across its stroke shows how deep the burn goes")
+                self.section_image = gui.add_image(np.zeros((8, 8, 3), np.uint8), format="png")
         with gui.add_folder("Stats"):
             self.stats_text = gui.add_markdown("starting...")
             series = {0: viser.uplot.Series(label="t (s)"), 1: viser.uplot.Series(label="max T (C)", stroke="orange"),
@@ -449,6 +457,9 @@ class LabApp:
             c = metrics["cautery"]
             max_t = c["max_temperature_c"]
             lines.append(f"max temperature: {max_t:.0f} C, coagulated: {c['coagulated_area_mm2']:.1f} mm2, charred: {c['charred_area_mm2']:.1f} mm2")
+            lines.append(f"burn depth: {c['coagulation_depth_mm']:.2f} mm at the deepest, coagulated volume {c['coagulated_volume_mm3']:.1f} mm3 "
+                         f"({c['layers']} layers, {100 * c['awake_tiles']:.0f} % of the tiles stepped)")
+            self._show_section()
         if "bleeding" in metrics:
             b = metrics["bleeding"]
             blood = b["blood_area_mm2"]
@@ -473,6 +484,18 @@ class LabApp:
         self.history.append((scene.time_s, max_t, blood))
         self.history = [row for row in self.history if scene.time_s - PLOT_SECONDS <= row[0] <= scene.time_s]  # (after a reset too)
         self.plot.data = tuple(np.array([row[column] for row in self.history], np.float64) for column in self.plot_columns)
+
+    def _show_section(self) -> None:
+        """The cross-section under the most recently energized tool (sims.section), drawn by lab.section_view."""
+        if self.section_image is None or self.section_time == self.scene.time_s:
+            return  # nothing new to show (a paused lab sends no pictures)
+        section = self.scene.burn_section()
+        if section is None:
+            return
+        self.section_time = self.scene.time_s
+        self.section_image.image = section_image(section)
+        self.section_text.content = (f"across the stroke of **{section.tool}** (depth against distance along the surface, "
+                                     f"mm; white: coagulated, Omega >= 1)")
 
     # --- simulation thread ------------------------------------------------------------------
     def run(self, until=None, timeout_s: float | None = None) -> bool:

@@ -51,11 +51,14 @@ def _warn_pool_full(scene: Scene, bar) -> None:
 
 
 def check_scene(scene: Scene) -> None:
-    """Before a run: say on stderr when the mesh looks like one in metres; raise ConfigError when the explicit heat
+    """Before a run: say on stderr when the mesh looks like one in metres and which retired keys the scene still holds
+    (they are ignored); raise ConfigError when the explicit heat
     scheme would need more than sims.cautery.MAX_SUBSTEPS substeps per step."""
     warning = scene.surface.size_warning
     if warning:
         print(f"warning: {scene.file}: mesh: {warning}", file=sys.stderr)
+    for note in scene.config.get("notes", ()):
+        print(f"note: {scene.file}: {note}", file=sys.stderr)
     if scene.cautery is not None:
         try:
             scene.cautery.substeps(scene.time_step_s)

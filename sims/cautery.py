@@ -1,59 +1,54 @@
-"""Cautery: Pennes bioheat on the surface (Laplace-Beltrami from the texel metric), contact heating,
-Arrhenius damage and charring. Fields are (H, W) in the image orientation of sims.surface.
+"""Cautery: Pennes bioheat in layers under the surface (lateral conduction with the texel metric, implicit along
+each column), the tool as a surface boundary condition, Arrhenius damage and charring in every layer.
 
-Heat: rho c dT/dt = k LB(T) + w_b rho_b c_b (T_body - T) + Q_tool.
-- LB(T) is discretised as a symmetric graph Laplacian on the 8-neighbour texel grid. The
-  conductance tensor K = sqrt|g| g^-1 (grid units) is split into non-negative weights along the
-  two grid axes and one diagonal (a - |b|, c - |b|, |b|), so every explicit update is a convex
-  combination of neighbour values: heat is conserved exactly (symmetric weights) and the maximum
-  principle holds. Diffusion is isotropic in millimetres whatever the UV stretch.
-- Two time-stepping schemes (SCHEMES; Cautery(..., scheme=...), scene key `cautery.scheme`):
-  "explicit" (default): forward-Euler diffusion substeps, added automatically below the stability
-  limit for any parameter value (explicit_substeps(dt): a few per 0.01 s step at 1024^2 texels for
-  liver, growing with k / texel size^2, e.g. hundreds for dt = 1 s at k = 5 W/(m K)), at most
-  MAX_SUBSTEPS: substeps(dt) raises SubstepLimit beyond it (a run is refused before its first step).
-  "implicit": one backward-Euler diffusion step per time step, unconditionally stable. Backward
-  Euler (theta = 1) rather than Crank-Nicolson because it keeps the discrete maximum principle for
-  every dt: M = A + dt alpha L is an M-matrix, M^-1 A >= 0 with rows summing to 1, so the diffused
-  field is a convex combination of the old one (CN rings where dt alpha / h^2 is large, i.e. at
-  sharp tool edges). It is first order in time (at dt = 0.01 s its time error exceeds the explicit
-  scheme's, whose substeps are shorter); it pays off for stiff cases (large k, small texels, long
-  steps). The increment d = T_new - T solves M d = -dt alpha L T (A = texel areas, L the symmetric
-  graph Laplacian above; M is symmetric positive definite) by Jacobi-preconditioned conjugate
-  gradient, matrix-free, in plain Taichi kernels that run on a GPU unchanged (two per iteration;
-  sums reduced in a fixed order, so results do not depend on the thread count), warm-started from
-  the previous step's d. It stops when |r| <= tolerance |dt alpha L T| (default 1e-5) or after
-  max_iterations (default 500). Heat is conserved to that tolerance (1^T L = 0: a step's heat error
-  is the sum of the final residual). The diffused field is clamped into [min T, max T] of the
-  step's start: a no-op (to rounding) after a converged solve, and what keeps a step that hit the
-  iteration cap finite and bounded (such a step may then not conserve heat exactly).
-  `last_iterations`: CG iterations of the last step ("explicit": its substeps); `last_residual`:
-  the relative residual it reached (0 for explicit); substeps(dt) is 1 for the implicit scheme.
-- Operator splitting (Lie, first order), both schemes: each (sub)step diffuses, then applies the
-  exact relaxation below (a convex step too, so the whole step keeps the maximum principle); damage
-  and char then integrate over the (sub)step at the mean of its start and end temperatures.
-- Perfusion and contact heating relax T exponentially (exactly) toward a weighted target, so they
-  are bounded for any rate: Q_tool = h w(d) (T_tip - T) / L with contact conductance h, heated
-  layer L and w(d) falling from 1 at contact (signed distance d <= 0) to 0 at the contact distance.
-- Damage: Omega += exp(ln A - Ea / (R T_K)) dt; coagulated fraction 1 - exp(-Omega).
-- Char: char += rate (T - T_char) dt above the charring temperature, capped at 1.
-UV chart seams conduct: texels that touch on the surface across a seam are linked with the weight
-the stencil gives that direction (sims.seams; symmetric, so the two properties above still hold).
-Open mesh borders and masked texels are insulated (zero flux).
+Fields: per texel (H, W) in the image orientation of sims.surface, and per layer (H * W, L) with layer 0 at the
+surface (sims.layers: L layers down to depth_mm, thin at the top; the outputs give them as (L, H, W)).
+
+Heat: rho c dT/dt = k div grad T + w_b rho_b c_b (T_body - T) in every layer, with
+- lateral conduction along each layer: a symmetric graph Laplacian on the 8-neighbour texel grid. The conductance
+  tensor K = sqrt|g| g^-1 (grid units) is split into non-negative weights along the two grid axes and one diagonal
+  (a - |b|, c - |b|, |b|), so every explicit update is a convex combination of neighbour values: heat is conserved
+  exactly (symmetric weights) and the maximum principle holds; diffusion is isotropic in millimetres whatever the
+  UV stretch. UV chart seams conduct (sims.seams links, the same in every layer); open mesh borders are insulated.
+  The layers share the surface metric (curvature over the few millimetres of depth is neglected).
+- conduction between layers, perfusion and the surface exchange: backward Euler along each column, a tridiagonal
+  M-matrix eliminated from the bottom up (sims.layers), stable for any dt and thinnest layer.
+- the surface: flux into the top layer H (T_ext - T_s) with H = h w(d) + h_air (1 - w(d)) and T_ext their weighted
+  temperature (tool tip, air), w(d) falling from 1 at contact (signed distance d <= 0) to 0 at the contact distance.
+  The face temperature T_s is eliminated through the top half layer (conductance 2k/dz_0 in series with H), as the
+  bench's 3D reference does; T_s is the reported surface temperature and drives the surface damage and char.
+- the bottom: held at body temperature at depth_mm, or insulated (cautery.bottom; sims.layers says why).
+Time stepping (SCHEMES; scene key `cautery.scheme`): per (sub)step the lateral part, then the column solve (Lie
+splitting, first order; both parts are convex, so the step keeps the maximum principle).
+  "explicit" (default): forward-Euler lateral substeps, added automatically below the stability limit (which
+  depends on the texel size, not on the layers: depth is implicit), at most MAX_SUBSTEPS (SubstepLimit beyond).
+  "implicit": one backward-Euler lateral step per layer and time step by Jacobi-preconditioned conjugate gradient
+  (matrix-free; sums reduced in a fixed order, so results do not depend on the thread count), unconditionally
+  stable; the diffused layer is clamped into its bounds at the step's start (a no-op after a converged solve).
+Damage: Omega += exp(ln A - Ea / (R T_K)) dt at the mean of a (sub)step's start and end temperatures, in every layer
+and at the surface (the rate from a table, RATE_STEP_C); coagulated fraction 1 - exp(-Omega). Char: char += rate (T - T_char) dt above the charring
+temperature, capped at 1. The coagulation depth per texel is the depth down to which Omega >= 1 from the surface (log
+Omega linear between the surface and the layer centres).
+Cost follows activity (sims.tiles): only awake tiles are stepped, each down to the deepest layer off its rest
+temperature (the steady column under perfusion and air loss) plus a margin; a tile sleeps when every layer is
+within sleep_tolerance_c of rest and below the damage threshold, and no energized tool is within reach.
 """
 import math
 
 import numpy as np
 import taichi as ti
 
+from sims import layers
 from sims.seams import seam_links
+from sims.tiles import TILE, TileSchedule, tile_spheres
 
 GAS_CONSTANT = 8.314462618  # J/(mol K)
 KELVIN = 273.15
 OMEGA_MAX = 1.0e6           # Omega is capped here: 1 - exp(-Omega) is 1 in float32 long before
+LOG_OMEGA_FLOOR = -80.0     # log Omega where Omega is 0 (for the depth map)
 STABILITY_MARGIN = 0.9      # explicit substep at this fraction of the convexity limit
 # Explicit heat substeps a step may take. Past it the implicit scheme is the better choice: an explicit 512^2
-# substep costs about 1 ms here, so 256 make a 0.01 s step 25x slower than real time. The lab's scenes stay far
+# substep costs about 1 ms per layer here, so 256 make a 0.01 s step far slower than real time. The lab's scenes stay far
 # below (1-3 at 512^2-1024^2); the slider extremes reach 138 at 1024^2 (k = 5 W/(m K), dt = 0.05 s), 551 at 2048^2.
 MAX_SUBSTEPS = 256
 CHARRED_LEVEL = 0.5         # char at or above this counts as charred area
@@ -65,6 +60,19 @@ RZ, RR, BB, PQ, RZ_OLD, ALPHA, LOW, HIGH = range(8)
 CG_CHUNK = 64               # texels of a row one thread sums; rows per block in the second reduction stage
 # neighbour offsets (row, col): +x, -x, +y, -y, (+x,+y), (-x,-y), (+x,-y), (-x,+y) with x = col, y = row
 NEIGHBOURS = ((0, 1), (0, -1), (1, 0), (-1, 0), (1, 1), (-1, -1), (-1, 1), (1, -1))
+SPARE_LAYERS = 2            # layers solved below the deepest one off rest (heat moving down finds a solved layer)
+TOOL_DEPTH = 3              # layers solved at least under a tool within reach
+# Cautery settings under which a field uniform in depth stays uniform (insulated bottom, no loss to air): the layered
+# model then spreads heat exactly as a surface-only model, which the analytic surface references need.
+SURFACE_ONLY = {"bottom": "insulated", "surface_loss_w_m2k": 0.0}
+MAX_FIELD_BYTES = 2 * 1024**3  # layered fields (two temperature buffers, damage, char) a scene may allocate
+# Arrhenius rates are tabulated every RATE_STEP_C from the damage threshold up to RATE_TOP_C (above every temperature the
+# sliders allow: tip 400 C) and interpolated linearly: ln rate has slope Ea / (R T^2) <= 0.3 per C above 43 C for the
+# presets, so the relative error is below (0.3 RATE_STEP_C)^2 / 8 = 1e-6, and a step costs a lookup, not an exp per
+# texel and layer (which was 80 % of a burning step).
+RATE_STEP_C = 0.01
+RATE_TOP_C = 410.0
+RATE_ENTRIES = int(round((RATE_TOP_C - 20.0) / RATE_STEP_C)) + 2  # the lowest damage threshold a slider allows is 20 C
 
 
 def direction_coefficients(metric: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -105,31 +113,71 @@ class SubstepLimit(ValueError):
     """The explicit heat scheme would need more than MAX_SUBSTEPS substeps per step; the message says what to change."""
 
 
+class LayerBudget(ValueError):
+    """The layered fields would not fit MAX_FIELD_BYTES; the message says what to change."""
+
+
+def _flat_columns(values: np.ndarray) -> np.ndarray:
+    """(L, H, W) -> (H * W, L) float32, the layout of the layered fields."""
+    return np.ascontiguousarray(values.reshape(values.shape[0], -1).T, dtype=np.float32)
+
+
+def layered_bytes(texture_size: int, layer_count: int) -> int:
+    """Bytes of the four layered float32 fields (two temperature buffers, damage, char) at this size."""
+    return 16 * int(texture_size) ** 2 * int(layer_count)
+
+
 @ti.data_oriented
 class Cautery:
-    """Temperature, damage and char on a TissueSurface, heated by InstrumentFields."""
+    """Temperature, damage and char in layers under a TissueSurface, heated by InstrumentFields."""
 
     def __init__(self, surface, tissue: dict, cautery: dict, instruments, scheme: str = "explicit",
                  tolerance: float = CG_TOLERANCE, max_iterations: int = CG_MAX_ITERATIONS):
-        """scheme: one of SCHEMES. tolerance, max_iterations: the CG solve of the implicit scheme."""
+        """tissue, cautery: parameter dicts (sims.params TISSUE, CAUTERY; `bottom` one of sims.layers.BOTTOMS), read
+        again every step (sliders). scheme: one of SCHEMES. tolerance, max_iterations: the implicit CG solve."""
         if scheme not in SCHEMES:
             raise ValueError(f"unknown heat scheme {scheme!r}; expected one of: {', '.join(SCHEMES)}")
         if not (tolerance > 0.0 and max_iterations >= 1):
             raise ValueError(f"need tolerance > 0 and max_iterations >= 1, got {tolerance}, {max_iterations}")
         self.surface, self.tissue, self.cautery, self.instruments = surface, tissue, cautery, instruments
         self.scheme, self.tolerance, self.max_iterations = scheme, float(tolerance), int(max_iterations)
-        self.last_iterations = 0   # CG iterations (implicit) or substeps (explicit) of the last step
-        self.last_residual = 0.0   # implicit: relative residual reached in the last step (0 for explicit)
+        self.bottom = cautery.get("bottom", "body")
+        self.layer_count = int(cautery["layers"])
+        self.faces_mm = layers.layer_faces(self.layer_count, float(cautery["depth_mm"]))
+        self.layer_depth_mm = layers.layer_centres(self.faces_mm)  # (L,) centre depths
+        layers.column_coupling(self.faces_mm, self.bottom)  # checks the bottom condition
         shape = surface.mask.shape
-        self.temperature = [ti.field(ti.f32, shape), ti.field(ti.f32, shape)]
-        self.omega = ti.field(ti.f32, shape)
-        self.char = ti.field(ti.f32, shape)
-        self.relax_rate = ti.field(ti.f32, shape)
-        self.relax_target = ti.field(ti.f32, shape)
+        needed = layered_bytes(max(shape), self.layer_count)
+        if needed > MAX_FIELD_BYTES:
+            raise LayerBudget(f"{self.layer_count} layers under {shape[1]} x {shape[0]} texels need {needed / 1e9:.1f} GB "
+                              f"(at most {MAX_FIELD_BYTES / 1e9:.1f}); use fewer cautery.layers or a smaller texture_size")
+        self.last_iterations = 0   # CG iterations (implicit, all layers) or substeps (explicit) of the last step
+        self.last_residual = 0.0   # implicit: largest relative residual of the last step's layer solves
+        deep = (shape[0] * shape[1], self.layer_count)  # (texel r * W + c, layer): a column is contiguous
+        self.temperatures = [ti.field(ti.f32, deep), ti.field(ti.f32, deep)]  # C per layer: this (sub)step's, the next
+        self.current = 0
+        self.omega_depth = ti.field(ti.f32, deep)
+        self.char_depth = ti.field(ti.f32, deep)
+        self.surface_temperature = ti.field(ti.f32, shape)  # C, the face at depth 0
+        self.omega = ti.field(ti.f32, shape)                # at the surface
+        self.char = ti.field(ti.f32, shape)                 # at the surface
+        self.coagulation_depth = ti.field(ti.f32, shape)    # mm
+        self.exchange = ti.field(ti.f32, shape)             # H, W/(m^2 K): tool contact and air
+        self.exchange_target = ti.field(ti.f32, shape)      # T_ext, C
         self.mask = ti.field(ti.i32, shape)
         self.inv_area = ti.field(ti.f32, shape)
         self.weights = ti.Vector.field(8, ti.f32, shape)
         self.position = ti.Vector.field(3, ti.f32, shape)
+        count = self.layer_count
+        self.centre_mm = ti.field(ti.f32, count)
+        self.rest = ti.field(ti.f32, count)       # C, the undisturbed column
+        self.up = ti.field(ti.f32, count)         # column factors (sims.layers.elimination_tables)
+        self.down = ti.field(ti.f32, count)
+        self.pivot = ti.field(ti.f32, (count + 1, count))
+        self.carry = ti.field(ti.f32, (count + 1, count))
+        self.centre_mm.from_numpy(self.layer_depth_mm.astype(np.float32))
+        self.rates = ti.field(ti.f32, RATE_ENTRIES)  # dOmega/dt (1/s) at t_damage + i RATE_STEP_C
+        self._rates_key = None
         coefficients = direction_coefficients(surface.metric, surface.mask)
         weights = edge_weights(coefficients, surface.mask)
         link_start, link_to, link_weight = seam_links(surface, coefficients, NEIGHBOURS)
@@ -149,7 +197,15 @@ class Cautery:
         self.inv_area.from_numpy(inv_area)
         self.weights.from_numpy(weights)
         self.position.from_numpy(surface.position_mm)
-        if scheme == "implicit":  # CG work fields: increment d, residual r, z = r / diag, directions p (2 slots), q = M p
+        self.tiles = TileSchedule(surface.mask, link_start, link_to, count)
+        centre, radius = tile_spheres(surface.position_mm, surface.mask)
+        self.tile_centre = ti.Vector.field(3, ti.f32, self.tiles.tiles)
+        self.tile_radius = ti.field(ti.f32, self.tiles.tiles)
+        self.tile_near = ti.field(ti.i32, self.tiles.tiles)  # 1: an energized tool within reach this step
+        self.tile_centre.from_numpy(centre)
+        self.tile_radius.from_numpy(radius)
+        if scheme == "implicit":  # CG work fields (one layer at a time): layer, increment d, residual r, z, p (2), q
+            self.layer = ti.field(ti.f32, shape)
             self.delta, self.residual, self.precond = ti.field(ti.f32, shape), ti.field(ti.f32, shape), ti.field(ti.f32, shape)
             self.product, self.diag = ti.field(ti.f32, shape), ti.field(ti.f32, shape)
             self.direction = ti.field(ti.f32, (2,) + tuple(shape))
@@ -160,8 +216,9 @@ class Cautery:
             self.row_sum = ti.field(ti.f32, (shape[0], 3))
             self.block_sum = ti.field(ti.f32, (self.blocks, 3))
             self.interleaved = ti.lang.impl.current_cfg().arch not in (ti.x64, ti.arm64)  # GPU: adjacent threads, adjacent texels
-        self.current = 0
-        self._idle_contact = None  # parameters of the last contact pass made with no tool energized
+        self._column_key = None  # parameters the column tables were made for
+        self._tools_were_near = False  # tile_near may hold ones
+        self._wake_all = True
         self.reset()
 
     # --- parameters ---------------------------------------------------------------------------
@@ -176,9 +233,27 @@ class Cautery:
         return t["perfusion_1_s"] * t["blood_density_kg_m3"] * t["blood_specific_heat_j_kgk"] / (t["density_kg_m3"] * t["specific_heat_j_kgk"])
 
     @property
+    def top_layer_mm(self) -> float:
+        return float(self.faces_mm[1])
+
+    @property
+    def half_layer_conductance_w_m2k(self) -> float:
+        """2 k / dz_0: the conductance from the surface face to the top layer's centre."""
+        return 2.0 * self.tissue["conductivity_w_mk"] / (self.top_layer_mm * 1e-3)
+
+    def exchange_rate_1_s(self, conductance_w_m2k: float) -> float:
+        """Rate (1/s) at which a surface exchange H relaxes the top layer: H in series with 2k/dz_0, over rho c dz_0."""
+        if conductance_w_m2k <= 0:
+            return 0.0
+        half = self.half_layer_conductance_w_m2k
+        series = conductance_w_m2k * half / (conductance_w_m2k + half)
+        t = self.tissue
+        return series / (t["density_kg_m3"] * t["specific_heat_j_kgk"] * self.top_layer_mm * 1e-3)
+
+    @property
     def contact_rate_1_s(self) -> float:
-        t, c = self.tissue, self.cautery
-        return c["contact_conductance_w_m2k"] / (t["density_kg_m3"] * t["specific_heat_j_kgk"] * c["heated_layer_mm"] * 1e-3)
+        """Rate at which full contact (w = 1) relaxes the top layer toward the tip temperature (1/s)."""
+        return self.exchange_rate_1_s(self.cautery["contact_conductance_w_m2k"])
 
     def substeps(self, dt_s: float) -> int:
         """Heat substeps a step of dt_s takes: explicit_substeps(dt_s), or 1 for the implicit scheme.
@@ -194,88 +269,184 @@ class Cautery:
         return count
 
     def explicit_substeps(self, dt_s: float) -> int:
-        """Explicit heat substeps needed for a step of dt_s to stay a convex update."""
+        """Explicit lateral substeps needed for a step of dt_s to stay a convex update."""
         limit = STABILITY_MARGIN / max(self.diffusivity_mm2_s * self.max_exchange_1_mm2, 1e-30)
         return max(1, math.ceil(dt_s / limit))
 
+    def _prepare_rates(self) -> None:
+        """The Arrhenius rate table for the current ln A, Ea and damage threshold."""
+        t = self.tissue
+        key = (t["arrhenius_ln_a"], t["activation_energy_j_mol"], t["damage_threshold_c"])
+        if key != self._rates_key:
+            self._rates_key = key
+            celsius = key[2] + RATE_STEP_C * np.arange(RATE_ENTRIES, dtype=np.float64)
+            exponent = np.minimum(key[0] - key[1] / (GAS_CONSTANT * (celsius + KELVIN)), 80.0)
+            self.rates.from_numpy(np.exp(exponent).astype(np.float32))
+
+    def _prepare_columns(self, sub_s: float) -> None:
+        """Column factors and the rest profile for the current parameters and (sub)step; a change wakes every tile."""
+        t, c = self.tissue, self.cautery
+        key = (sub_s, self.diffusivity_mm2_s, self.perfusion_rate_1_s, t["body_temperature_c"], t["conductivity_w_mk"],
+               t["density_kg_m3"], t["specific_heat_j_kgk"], c["surface_loss_w_m2k"], c["air_temperature_c"])
+        if key == self._column_key:
+            return
+        self._column_key = key
+        up, down, pivot, carry = layers.elimination_tables(self.faces_mm, self.bottom, sub_s, self.diffusivity_mm2_s,
+                                                           self.perfusion_rate_1_s)
+        for field, values in ((self.up, up), (self.down, down), (self.pivot, pivot), (self.carry, carry)):
+            field.from_numpy(values.astype(np.float32))
+        self.rest.from_numpy(self.rest_profile_c().astype(np.float32))
+        self._wake_all = True
+
+    def rest_profile_c(self) -> np.ndarray:
+        """(L,) C: the steady column under perfusion, the bottom and the air loss, no tool."""
+        t, c = self.tissue, self.cautery
+        return layers.rest_profile(self.faces_mm, self.bottom, self.diffusivity_mm2_s, self.perfusion_rate_1_s,
+                                   t["body_temperature_c"], self.exchange_rate_1_s(c["surface_loss_w_m2k"]), c["air_temperature_c"])
+
     # --- state --------------------------------------------------------------------------------
     def reset(self) -> None:
-        self.current = 0
-        self.temperature[0].from_numpy(np.where(self.surface.mask, self.tissue["initial_temperature_c"], 0.0).astype(np.float32))
-        self.omega.fill(0.0)
-        self.char.fill(0.0)
-        self._forget_warm_start()
+        """t = 0: every layer at its rest temperature shifted by initial - body temperature, no damage or char."""
+        t = self.tissue
+        start = self.rest_profile_c() + (t["initial_temperature_c"] - t["body_temperature_c"])
+        self.set_temperature(np.broadcast_to(start[:, None, None], (self.layer_count,) + self.surface.mask.shape))
+        for field in (self.omega_depth, self.char_depth, self.omega, self.char, self.coagulation_depth, self.exchange):
+            field.fill(0.0)
+        self.exchange_target.fill(t["body_temperature_c"])
 
     def set_temperature(self, values: np.ndarray) -> None:
-        """Set T (H, W) in C on the surface (masked texels stay 0)."""
-        self.temperature[self.current].from_numpy(np.where(self.surface.mask, values, 0.0).astype(np.float32))
-        self._forget_warm_start()
-
-    def _forget_warm_start(self) -> None:
-        """The implicit solve starts from the last step's increment; a new state starts from 0 (reproducible runs)."""
+        """Set T in C: (H, W) for every layer alike, or (L, H, W) per layer (masked texels stay 0). Wakes every tile."""
+        values = np.asarray(values, np.float32)
+        if values.ndim == 2:
+            values = np.broadcast_to(values, (self.layer_count,) + values.shape)
+        mask = self.surface.mask
+        self.current = 0
+        self.temperatures[0].from_numpy(_flat_columns(np.where(mask[None], values, 0.0)))
+        self.surface_temperature.from_numpy(np.where(mask, values[0], 0.0).astype(np.float32))
+        self._wake_all = True
         if self.scheme == "implicit":
-            self.delta.fill(0.0)
+            self.delta.fill(0.0)  # the implicit solve starts from the last increment; a new state from 0
 
     def temperature_c(self) -> np.ndarray:
-        return self.temperature[self.current].to_numpy()
+        """(H, W) C at the surface."""
+        return self.surface_temperature.to_numpy()
+
+    def temperature_depth_c(self) -> np.ndarray:
+        """(L, H, W) C per layer."""
+        return self._layers(self.temperatures[self.current])
 
     def damage_omega(self) -> np.ndarray:
+        """(H, W) Omega at the surface."""
         return self.omega.to_numpy()
 
+    def damage_omega_depth(self) -> np.ndarray:
+        """(L, H, W) Omega per layer."""
+        return self._layers(self.omega_depth)
+
+    def _layers(self, field) -> np.ndarray:
+        """(L, H, W) float32 of a layered field."""
+        height, width = self.surface.mask.shape
+        return np.ascontiguousarray(field.to_numpy().reshape(height, width, self.layer_count).transpose(2, 0, 1))
+
     def char_level(self) -> np.ndarray:
+        """(H, W) char at the surface."""
         return self.char.to_numpy()
 
+    def coagulation_depth_mm(self) -> np.ndarray:
+        """(H, W) mm: the depth down to which Omega >= 1 from the surface (log Omega linear between the surface and the
+        layer centres; 0 where the surface is not coagulated)."""
+        return self.coagulation_depth.to_numpy()
+
+    def awake_fraction(self) -> float:
+        """Share of the surface tiles stepped in the last step."""
+        return self.tiles.awake_fraction()
+
+    # --- stepping -----------------------------------------------------------------------------
     def step(self, dt_s: float) -> None:
-        """Advance dt_s seconds: contact field from the current instrument poses, then heat substeps
-        (explicit) or one backward-Euler step (implicit)."""
+        """Advance dt_s seconds: wake the tiles that need it, surface exchange from the current instrument poses,
+        then lateral substeps (explicit) or one lateral solve per layer (implicit), each followed by the column solve."""
         t, c = self.tissue, self.cautery
-        contact = (self.perfusion_rate_1_s, t["body_temperature_c"], self.contact_rate_1_s, c["contact_distance_mm"])
-        if self.instruments.any_energized or contact != self._idle_contact:
-            self._contact(*contact)
-            self._idle_contact = None if self.instruments.any_energized else contact
-        ea_r = t["activation_energy_j_mol"] / GAS_CONSTANT
-        if self.scheme == "implicit":
-            self._implicit_step(dt_s, ea_r)
-            return
         count = self.substeps(dt_s)
         sub = dt_s / count
+        self._prepare_columns(sub)
+        self._prepare_rates()
+        reach = c["contact_distance_mm"]
+        wake_all = self._wake_all or self.scheme == "implicit"
+        if not (wake_all or self.instruments.any_energized or self.tiles.awake):
+            self.last_iterations = count
+            return  # nothing was awake and nothing can wake a tile: an idle lab costs no kernel
+        if self.instruments.any_energized or self._tools_were_near:
+            self._want_near_tools(reach, min(TOOL_DEPTH, self.layer_count))
+            self._tools_were_near = self.instruments.any_energized
+        awake = self.tiles.plan(max(1, math.ceil(count / TILE)), SPARE_LAYERS, wake_all)
+        self._wake_all = False
+        if self.tiles.fell_asleep:  # their latest values into the other buffer too (they are not stepped now)
+            self._copy_sleeping(self.temperatures[self.current], self.temperatures[1 - self.current], self.tiles.fell_asleep)
         self.last_iterations = count
-        for _ in range(count):
-            src, dst = self.temperature[self.current], self.temperature[1 - self.current]
-            self._substep(src, dst, sub, self.diffusivity_mm2_s, t["arrhenius_ln_a"], ea_r, t["damage_threshold_c"],
-                          t["char_temperature_c"], t["char_rate_1_s_c"])
+        if awake == 0:
+            return
+        body = t["body_temperature_c"]
+        self._exchange(awake, reach, c["contact_conductance_w_m2k"], c["surface_loss_w_m2k"], c["air_temperature_c"], body)
+        column = (body, sub * self.perfusion_rate_1_s, self.half_layer_conductance_w_m2k,
+                  t["density_kg_m3"] * t["specific_heat_j_kgk"] * self.top_layer_mm * 1e-3,
+                  t["damage_threshold_c"], t["char_temperature_c"], t["char_rate_1_s_c"])
+        if self.scheme == "implicit":
+            self._implicit_lateral(sub)
+            self._substep(self.temperatures[self.current], self.temperatures[1 - self.current], awake, False, sub, 0.0, *column)
             self.current = 1 - self.current
+        else:
+            for _ in range(count):
+                self._substep(self.temperatures[self.current], self.temperatures[1 - self.current], awake, True, sub,
+                              self.diffusivity_mm2_s, *column)
+                self.current = 1 - self.current
+        self._scan(self.temperatures[self.current], awake, c["sleep_tolerance_c"], t["damage_threshold_c"])
 
-    def _implicit_step(self, dt_s: float, ea_r: float) -> None:
-        """Backward Euler for the diffusion (Jacobi-preconditioned CG), then the exact relaxation."""
-        t = self.tissue
-        temperature = self.temperature[self.current]
+    def _implicit_lateral(self, dt_s: float) -> None:
+        """Backward Euler for the lateral conduction of every layer (Jacobi-preconditioned CG) into the next buffer."""
         coupling = dt_s * self.diffusivity_mm2_s  # mm^2
-        self._cg_start(temperature, coupling)
-        scale, residual = float(self.sums[BB]), float(self.sums[RR])
-        iterations = 0
-        if scale > 0.0:
-            threshold = self.tolerance**2 * scale
-            while residual > threshold and iterations < self.max_iterations:
-                old = iterations % 2
-                self._cg_direction(old, 1 - old, coupling)
-                self._cg_update(1 - old)
-                iterations += 1
-                residual = float(self.sums[RR])
-            self.last_residual = math.sqrt(residual / scale)
-        else:  # a uniform field: nothing diffuses
-            self.delta.fill(0.0)
-            self.last_residual = 0.0
-        self.last_iterations = iterations
-        self._cg_finish(temperature, dt_s, t["arrhenius_ln_a"], ea_r, t["damage_threshold_c"], t["char_temperature_c"], t["char_rate_1_s_c"])
+        total, worst = 0, 0.0
+        for layer in range(self.layer_count):
+            self._take_layer(self.temperatures[self.current], layer)
+            self._cg_start(self.layer, coupling)
+            scale, residual = float(self.sums[BB]), float(self.sums[RR])
+            iterations = 0
+            if scale > 0.0:
+                threshold = self.tolerance**2 * scale
+                while residual > threshold and iterations < self.max_iterations:
+                    old = iterations % 2
+                    self._cg_direction(old, 1 - old, coupling)
+                    self._cg_update(1 - old)
+                    iterations += 1
+                    residual = float(self.sums[RR])
+                worst = max(worst, math.sqrt(residual / scale))
+            else:  # a uniform layer: nothing diffuses
+                self.delta.fill(0.0)
+            total += iterations
+            self._cg_finish(self.temperatures[1 - self.current], layer)
+        self.last_iterations, self.last_residual = total, worst
 
     @ti.kernel
-    def _contact(self, perfusion: ti.f32, body: ti.f32, contact: ti.f32, reach: ti.f32):
-        for r, c in self.mask:
-            rate = perfusion
-            weighted = perfusion * body
-            if self.mask[r, c]:
+    def _want_near_tools(self, reach: ti.f32, depth: ti.i32):
+        """Tiles within reach of an energized tool ask for `depth` layers and are marked in tile_near."""
+        for t in range(self.tiles.tiles):
+            near = 0
+            if self.tile_radius[t] >= 0.0:
                 for k in range(self.instruments.count):
+                    gap = (self.tile_centre[t] - self.instruments.position[k]).norm() - self.tile_radius[t]
+                    if self.instruments.energized[k] and gap < self.instruments.extent[k] + reach:
+                        near = 1
+            self.tile_near[t] = near
+            if near:
+                self.tiles.wanted[t] = depth
+
+    @ti.kernel
+    def _exchange(self, awake: ti.i32, reach: ti.f32, contact: ti.f32, air: ti.f32, air_c: ti.f32, body: ti.f32):
+        """Surface exchange H (W/(m^2 K)) and its temperature T_ext per texel of the awake tiles: tools and air."""
+        for i, j in ti.ndrange(awake, TILE * TILE):
+            tile, r, c, inside = self.tiles.texel(i, j)
+            if inside and self.mask[r, c]:
+                touch, heat = 0.0, 0.0
+                for k in range(self.instruments.count * self.tile_near[tile]):
                     near = (self.position[r, c] - self.instruments.position[k]).norm() < self.instruments.extent[k] + reach
                     if self.instruments.energized[k] and near:
                         d = self.instruments.distance(k, self.position[r, c])
@@ -284,52 +455,150 @@ class Cautery:
                             w = 1.0
                         elif d < reach:
                             w = 1.0 - d / reach
-                        rate += contact * w
-                        weighted += contact * w * self.instruments.tip_temperature[k]
-            self.relax_rate[r, c] = rate
-            self.relax_target[r, c] = weighted / rate if rate > 0.0 else body
+                        touch += w
+                        heat += w * self.instruments.tip_temperature[k]
+                open_air = air * ti.max(1.0 - touch, 0.0)
+                total = contact * touch + open_air
+                self.exchange[r, c] = total
+                self.exchange_target[r, c] = (contact * heat + open_air * air_c) / total if total > 0.0 else body
 
     @ti.kernel
-    def _substep(self, src: ti.template(), dst: ti.template(), dt: ti.f32, alpha: ti.f32, ln_a: ti.f32, ea_r: ti.f32, t_damage: ti.f32,
+    def _copy_sleeping(self, src: ti.template(), dst: ti.template(), count: ti.i32):
+        for i, j in ti.ndrange(count, TILE * TILE):
+            tile, r, c, inside = self.tiles.texel_of(self.tiles.asleep[i], j)
+            if inside:
+                f = r * self.mask.shape[1] + c
+                for layer in range(self.layer_count):
+                    dst[f, layer] = src[f, layer]
+
+    @ti.func
+    def _damage_rate(self, mid, t_damage):
+        """dOmega/dt (1/s) at temperature mid (C) above the damage threshold, from the rate table."""
+        x = ti.min((mid - t_damage) / RATE_STEP_C, RATE_ENTRIES - 1.001)
+        i = ti.cast(x, ti.i32)
+        a = x - i
+        return self.rates[i] * (1.0 - a) + self.rates[i + 1] * a
+
+    @ti.kernel
+    def _substep(self, src: ti.template(), dst: ti.template(), awake: ti.i32, explicit: ti.template(), dt: ti.f32, alpha: ti.f32,
+                 body: ti.f32, perfused: ti.f32, half: ti.f32, rho_c_dz0: ti.f32, t_damage: ti.f32,
                  t_char: ti.f32, char_rate: ti.f32):
-        height, width = src.shape[0], src.shape[1]
-        for r, c in src:
-            if self.mask[r, c]:
-                t0 = src[r, c]
-                flux = 0.0
+        """One (sub)step of the awake tiles, src -> dst: the lateral part (explicit: from src's neighbours; otherwise
+        dst already holds it), then the column solve of the solved layers, damage and char per layer and at the
+        surface face; the layers below are copied. perfused = dt w (w the perfusion rate), half = 2k/dz_0,
+        rho_c_dz0 in J/(m^2 K)."""
+        height, width, count = self.mask.shape[0], self.mask.shape[1], self.layer_count
+        for i, j in ti.ndrange(awake, TILE * TILE):
+            tile, r, c, inside = self.tiles.texel(i, j)
+            if inside and self.mask[r, c]:
+                n = self.tiles.depth[tile]
+                f = r * width + c
+                star = ti.Vector.zero(ti.f32, ti.static(self.layer_count))  # the column after the lateral part
                 w = self.weights[r, c]
+                scale = dt * alpha * self.inv_area[r, c]
+                first, last = self.link_start[f], self.link_start[f + 1]
+                around = ti.Vector.zero(ti.i32, 8)  # the neighbours' texel indices (clamped at the texture border)
                 for k in ti.static(range(8)):
-                    rr = ti.min(ti.max(r + NEIGHBOURS[k][0], 0), height - 1)
-                    cc = ti.min(ti.max(c + NEIGHBOURS[k][1], 0), width - 1)
-                    flux += w[k] * (src[rr, cc] - t0)
-                for m in range(self.link_start[r * width + c], self.link_start[r * width + c + 1]):
-                    j = self.link_to[m]
-                    flux += self.link_weight[m] * (src[j // width, j % width] - t0)
-                t1 = self._relax(r, c, t0 + dt * alpha * self.inv_area[r, c] * flux, dt)
-                dst[r, c] = t1
-                self._damage(r, c, t0, t1, dt, ln_a, ea_r, t_damage, t_char, char_rate)
+                    around[k] = ti.min(ti.max(r + NEIGHBOURS[k][0], 0), height - 1) * width + ti.min(ti.max(c + NEIGHBOURS[k][1], 0), width - 1)
+                for layer in ti.static(range(self.layer_count)):  # unrolled: the columns stay in registers
+                    if layer < n:
+                        if ti.static(not explicit):
+                            star[layer] = dst[f, layer]
+                        else:
+                            t0 = src[f, layer]
+                            flux = 0.0
+                            for k in ti.static(range(8)):
+                                flux += w[k] * (src[around[k], layer] - t0)
+                            for m in range(first, last):
+                                flux += self.link_weight[m] * (src[self.link_to[m], layer] - t0)
+                            star[layer] = t0 + scale * flux
+                exchange, target = self.exchange[r, c], self.exchange_target[r, c]
+                rate = 0.0
+                if exchange > 0.0:
+                    rate = exchange * half / (exchange + half) / rho_c_dz0
+                held = body
+                if n < count:
+                    held = src[f, n]
+                # increment form: M delta = b - M T*, the right side from differences (0 for a column at rest, so
+                # rounding scales with the change, and a uniform column with nothing driving it stays exactly uniform)
+                rhs = ti.Vector.zero(ti.f32, ti.static(self.layer_count))
+                for layer in ti.static(range(self.layer_count)):
+                    if layer < n:
+                        value = star[layer]
+                        above = value
+                        if ti.static(layer > 0):
+                            above = star[layer - 1]
+                        below = held
+                        if ti.static(layer < self.layer_count - 1):
+                            if layer < n - 1:
+                                below = star[layer + 1]
+                        rhs[layer] = self.up[layer] * (above - value) + self.down[layer] * (below - value) + perfused * (body - value)
+                rhs[0] += dt * rate * (target - star[0])
+                for step in ti.static(range(1, self.layer_count)):  # upward: R_l = r_l + carry[n, l] R_{l+1}
+                    layer = ti.static(self.layer_count - 1 - step)
+                    if layer < n - 1:
+                        rhs[layer] += self.carry[n, layer] * rhs[layer + 1]
+                above = 0.0
+                for layer in ti.static(range(self.layer_count)):  # downward: delta_l = (R_l + up_l delta_{l-1}) / pivot[n, l]
+                    if layer < n:
+                        pivot = self.pivot[n, layer]
+                        if layer == 0:
+                            pivot += dt * rate
+                        change = (rhs[layer] + self.up[layer] * above) / pivot
+                        t1 = star[layer] + change
+                        dst[f, layer] = t1
+                        mid = 0.5 * (src[f, layer] + t1)
+                        if mid > t_damage:
+                            self.omega_depth[f, layer] = ti.min(self.omega_depth[f, layer] + self._damage_rate(mid, t_damage) * dt, OMEGA_MAX)
+                        if mid > t_char:
+                            self.char_depth[f, layer] = ti.min(self.char_depth[f, layer] + char_rate * (mid - t_char) * dt, 1.0)
+                        above = change
+                for layer in range(n, count):
+                    dst[f, layer] = src[f, layer]
+                s0 = self.surface_temperature[r, c]
+                s1 = (exchange * target + half * dst[f, 0]) / (exchange + half)
+                self.surface_temperature[r, c] = s1
+                mid = 0.5 * (s0 + s1)
+                if mid > t_damage:
+                    self.omega[r, c] = ti.min(self.omega[r, c] + self._damage_rate(mid, t_damage) * dt, OMEGA_MAX)
+                if mid > t_char:
+                    self.char[r, c] = ti.min(self.char[r, c] + char_rate * (mid - t_char) * dt, 1.0)
 
     @ti.func
-    def _relax(self, r, c, t, dt):
-        """Exact exponential relaxation toward relax_target at relax_rate (perfusion and contact)."""
-        t1 = t
-        rate = self.relax_rate[r, c]
-        if rate > 0.0:
-            target = self.relax_target[r, c]
-            t1 = target + (t - target) * ti.exp(-rate * dt)
-        return t1
+    def _log_omega(self, omega):
+        value = LOG_OMEGA_FLOOR
+        if omega > 0.0:
+            value = ti.log(omega)
+        return value
 
-    @ti.func
-    def _damage(self, r, c, t0, t1, dt, ln_a, ea_r, t_damage, t_char, char_rate):
-        """Arrhenius damage (above t_damage) and char over dt at the mean of the temperatures before and after."""
-        mid = 0.5 * (t0 + t1)
-        if mid > t_damage:
-            exponent = ti.min(ln_a - ea_r / (mid + KELVIN), 80.0)
-            self.omega[r, c] = ti.min(self.omega[r, c] + ti.exp(exponent) * dt, OMEGA_MAX)
-        if mid > t_char:
-            self.char[r, c] = ti.min(self.char[r, c] + char_rate * (mid - t_char) * dt, 1.0)
+    @ti.kernel
+    def _scan(self, temperature: ti.template(), awake: ti.i32, tolerance: ti.f32, t_damage: ti.f32):
+        """Per awake tile the deepest layer off rest or above the damage threshold (into tiles.hot); per texel the
+        coagulation depth: from the surface down to where log Omega, linear between the surface and the layer
+        centres, falls below 0."""
+        for i, j in ti.ndrange(awake, TILE * TILE):
+            tile, r, c, inside = self.tiles.texel(i, j)
+            if inside and self.mask[r, c]:
+                n = self.tiles.depth[tile]
+                f = r * self.mask.shape[1] + c
+                for step in range(n):
+                    layer = n - 1 - step
+                    value = temperature[f, layer]
+                    if ti.abs(value - self.rest[layer]) > tolerance or value > t_damage:  # off rest, or taking damage
+                        ti.atomic_max(self.tiles.hot[tile], layer)
+                        break
+                depth, z_prev = 0.0, 0.0
+                f_prev = self._log_omega(self.omega[r, c])
+                if f_prev >= 0.0:
+                    for layer in range(self.layer_count):
+                        z, value = self.centre_mm[layer], self._log_omega(self.omega_depth[f, layer])
+                        if value < 0.0:
+                            depth = z_prev + (z - z_prev) * f_prev / (f_prev - value)
+                            break
+                        depth, z_prev, f_prev = z, z, value
+                self.coagulation_depth[r, c] = depth
 
-    # --- implicit scheme: (A + k L) d = -k L T with k = dt alpha, by Jacobi-preconditioned CG ------
+    # --- implicit lateral step: (A + k L) d = -k L T per layer, k = dt alpha, by Jacobi-preconditioned CG ------
     # (M d)_i = (A_i + k sum_j w_ij) d_i - k sum_j w_ij d_j is symmetric positive definite (w_ij = w_ji >= 0,
     # A_i > 0). The reducing kernels loop over (row, group): each thread sums CG_CHUNK texels of its row
     # (_chunk_column) into `partial`; _reduce then adds those up per row, per block of rows and in
@@ -466,27 +735,33 @@ class Cautery:
         self._reduce(RZ, 2)  # RZ, RR
 
     @ti.kernel
-    def _cg_finish(self, temperature: ti.template(), dt: ti.f32, ln_a: ti.f32, ea_r: ti.f32, t_damage: ti.f32, t_char: ti.f32,
-                   char_rate: ti.f32):
-        """T + d clamped into the bounds of T (maximum principle), relaxation, damage and char."""
-        for r, c in temperature:
+    def _take_layer(self, temperature: ti.template(), layer: ti.i32):
+        for r, c in self.layer:
+            self.layer[r, c] = temperature[r * self.mask.shape[1] + c, layer]
+
+    @ti.kernel
+    def _cg_finish(self, lateral: ti.template(), layer: ti.i32):
+        """The layer plus d, clamped into the layer's bounds at the step's start (maximum principle), into `lateral`."""
+        for r, c in self.layer:
             if self.mask[r, c]:
-                t0 = temperature[r, c]
-                t1 = t0 + self.delta[r, c]
+                t1 = self.layer[r, c] + self.delta[r, c]
                 if t1 < self.sums[LOW]:  # comparisons, not min/max: a NaN stays NaN (and is reported)
                     t1 = self.sums[LOW]
                 if t1 > self.sums[HIGH]:
                     t1 = self.sums[HIGH]
-                t1 = self._relax(r, c, t1, dt)
-                temperature[r, c] = t1
-                self._damage(r, c, t0, t1, dt, ln_a, ea_r, t_damage, t_char, char_rate)
+                lateral[r * self.mask.shape[1] + c, layer] = t1
 
     # --- outputs ------------------------------------------------------------------------------
     def metrics(self) -> dict:
         mask, area = self.surface.mask, self.surface.texel_area_mm2.astype(np.float64)
-        temperature = self.temperature_c()
+        depth = self.coagulation_depth_mm().astype(np.float64)
         return {
-            "max_temperature_c": float(temperature[mask].max()),
+            "max_temperature_c": float(self.temperature_c()[mask].max()),
             "coagulated_area_mm2": float(area[self.damage_omega() >= 1.0].sum()),
             "charred_area_mm2": float(area[self.char_level() >= CHARRED_LEVEL].sum()),
+            "coagulation_depth_mm": float(depth[mask].max()),
+            "coagulated_volume_mm3": float((area * depth)[mask].sum()),
+            "layers": self.layer_count,
+            "top_layer_mm": self.top_layer_mm,
+            "awake_tiles": self.awake_fraction(),
         }

@@ -2,7 +2,8 @@
 
 A stage table (scene key look.stages) drives the tissue: the first stage is the base look; each
 later stage is mixed in with weight opacity * smoothstep(from, to, field), where field is one of
-coagulation (1 - exp(-Omega)), char, omega or temperature_c. Reordering or adding stages needs no
+coagulation (1 - exp(-Omega)), char, omega, temperature_c (all at the surface) or coagulation_depth_mm
+(how deep the burn goes, so a deep burn can look different from a shallow one). Reordering or adding stages needs no
 code. Blood covers the tissue where its film is thick enough: coverage is a smoothstep of the
 displayed film thickness between BLOOD_EDGE fractions of the rest film (a defined, anti-aliased
 edge rather than the glow ring of a plain blur), and its colour darkens from fresh red at the rest
@@ -15,7 +16,7 @@ import numpy as np
 import taichi as ti
 from PIL import Image
 
-FIELD_CODES = {"coagulation": 0, "char": 1, "omega": 2, "temperature_c": 3}
+FIELD_CODES = {"coagulation": 0, "char": 1, "omega": 2, "temperature_c": 3, "coagulation_depth_mm": 4}
 BLOOD_EDGE = (0.25, 0.6)              # film fractions where coverage goes from 0 to 1
 BLOOD_DARK_FILMS = 4.0                # film multiples at which blood reaches its darkest colour
 BLOOD_THIN_RGB = (0.45, 0.02, 0.03)   # fresh blood film over tissue
@@ -71,7 +72,7 @@ class Composer:
     def compose(self, cautery=None, bleeding=None) -> np.ndarray:
         """(H, W, 3) uint8 from the models present (each may be None)."""
         if cautery is not None:
-            self._tissue(cautery.temperature[cautery.current], cautery.omega, cautery.char)
+            self._tissue(cautery.surface_temperature, cautery.omega, cautery.char, cautery.coagulation_depth)
         if bleeding is not None:
             self._with_blood(bleeding.thickness, bleeding.params["film_thickness_mm"], self.texel_mm)
         else:
@@ -79,7 +80,7 @@ class Composer:
         return self.rgb.to_numpy()
 
     @ti.kernel
-    def _tissue(self, temperature: ti.template(), omega: ti.template(), char: ti.template()):
+    def _tissue(self, temperature: ti.template(), omega: ti.template(), char: ti.template(), depth: ti.template()):
         for r, c in self.color:
             color = self.textures[0, r, c]
             for s in range(1, self.count):
@@ -91,6 +92,8 @@ class Composer:
                     value = char[r, c]
                 elif code == 2:
                     value = omega[r, c]
+                elif code == 4:
+                    value = depth[r, c]
                 lo, hi = self.ranges[s][0], self.ranges[s][1]
                 x = ti.min(ti.max((value - lo) / (hi - lo), 0.0), 1.0)
                 weight = x * x * (3.0 - 2.0 * x) * self.ranges[s][2]

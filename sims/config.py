@@ -3,6 +3,8 @@
 `cautery.scheme` (optional, default explicit) picks the heat time stepping of the cautery model:
 `explicit` (automatic substeps below the stability limit) or `implicit` (one backward-Euler step per
 time step, conjugate gradient), e.g. `cautery: {scheme: implicit}` or `--set cautery.scheme=implicit`.
+`cautery.bottom` (optional, default body): below the deepest heat layer the tissue is held at body temperature
+(`body`) or insulated (`insulated`). Keys in sims.params.RETIRED load with a note in config["notes"] and are ignored.
 """
 from __future__ import annotations
 
@@ -21,9 +23,10 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 MAX_SCENE_BYTES = 1_000_000  # a scene file is a page of YAML; anything larger is refused before it is read
 NAME_PATTERN = re.compile(r"[A-Za-z0-9_\-]{1,64}")
 MODELS = ("cautery", "bleeding")
-STAGE_FIELDS = ("coagulation", "char", "omega", "temperature_c")
+STAGE_FIELDS = ("coagulation", "char", "omega", "temperature_c", "coagulation_depth_mm")
 SHAPE_TYPES = ("ball", "capsule", "spatula", "mesh")
 CAUTERY_SCHEMES = ("explicit", "implicit")  # = sims.cautery.SCHEMES (not imported here: that imports Taichi)
+CAUTERY_BOTTOMS = ("body", "insulated")  # = sims.layers.BOTTOMS
 DEFAULT_STAGES = [
     {"name": "healthy", "texture": "textures/liver_healthy.png"},
     {"name": "coagulated", "texture": "textures/liver_coagulated.png", "field": "coagulation", "from": 0.2, "to": 0.95},
@@ -42,6 +45,10 @@ class ConfigError(Exception):
 class _Context:
     def __init__(self, file: Path):
         self.file = file
+        self.notes: list[str] = []  # "key: message" for retired keys the file still holds
+
+    def note(self, key: str, message: str):
+        self.notes.append(f"{key}: {message}")
 
     def fail(self, key: str, message: str):
         raise ConfigError(self.file, key or "(top level)", message)
@@ -165,8 +172,11 @@ class Record:
             value = {}
         if not isinstance(value, dict):
             ctx.fail(key, f"expected a mapping, got {type(value).__name__}")
-        for name in value:
-            if name not in self.fields:
+        for name in list(value):
+            if _join(key, name) in params.RETIRED:
+                ctx.note(_join(key, name), params.RETIRED[_join(key, name)])
+                value = {other: item for other, item in value.items() if other != name}
+            elif name not in self.fields:
                 close = difflib.get_close_matches(str(name), self.fields, n=1)
                 hint = f" (did you mean {close[0]!r}?)" if close else f"; known keys: {', '.join(self.fields)}"
                 ctx.fail(_join(key, name), f"unknown key{hint}")
@@ -315,7 +325,8 @@ SCENE = Record(
         "models": ListOf(Text(choices=MODELS), default=["cautery"]),
         "gravity_mm_s2": Vector([0.0, 0.0, -9810.0]),
         "tissue": Record({"preset": Text("liver", choices=tuple(params.TISSUE_PRESETS)), **_numbers(params.TISSUE, default=None)}, check=_check_tissue),
-        "cautery": Record({**_numbers(params.CAUTERY), "scheme": Text("explicit", choices=CAUTERY_SCHEMES)}),
+        "cautery": Record({**_numbers(params.CAUTERY), "scheme": Text("explicit", choices=CAUTERY_SCHEMES),
+                           "bottom": Text("body", choices=CAUTERY_BOTTOMS)}),
         "bleeding": Record(_numbers(params.BLEEDING)),
         "look": Record({"stages": ListOf(_STAGE, default=DEFAULT_STAGES, max_len=8)}, check=lambda look, key, ctx: _check_stages(look["stages"], _join(key, "stages"), ctx)),
         "instruments": ListOf(_INSTRUMENT, max_len=8),
@@ -406,4 +417,5 @@ def load_scene_config(path, overrides: list[str] = ()) -> dict:
         apply_override(raw, parts, value, ctx)
     config = SCENE.validate(raw, "", ctx)
     config["scene_file"] = path.resolve()
+    config["notes"] = ctx.notes
     return config

@@ -18,7 +18,7 @@ from sims.config import ConfigError, load_scene_config
 _MODEL_GROUPS = (
     ("", {name: spec for name, spec in params.SIMULATION.items() if name != "duration_s"}, None, {"texture_size"}),
     ("tissue", params.TISSUE, "cautery", set()),
-    ("cautery", params.CAUTERY, "cautery", set()),
+    ("cautery", params.CAUTERY, "cautery", {"layers", "depth_mm"}),
     ("bleeding", params.BLEEDING, "bleeding", {"capacity"}),
 )
 SHAPE_PARAMETERS = {"ball": ("radius_mm",), "capsule": ("radius_mm", "length_mm"), "spatula": ("width_mm", "thickness_mm", "length_mm"),
@@ -144,13 +144,21 @@ class Scene:
         self.instruments = [Instrument.from_config(item) for item in config["instruments"]]
         self.cautery = self.bleeding = None
         self.bleed_points = []
+        self._active_tool = None      # (name, position mm, last move mm) of the heating tool last seen energized
+        self._section_sampler = None  # sims.section.SectionSampler, made on the first burn_section()
         self._parameters = None  # (tool and point names, parameter table) made by parameters()
         if "cautery" in self.models:
             from sims.cautery import Cautery
             from sims.instruments import InstrumentFields
 
             self.instrument_fields = InstrumentFields([tool for tool in self.instruments if tool.suction is None])
-            self.cautery = Cautery(self.surface, config["tissue"], config["cautery"], self.instrument_fields, scheme=config["cautery"]["scheme"])
+            from sims.cautery import LayerBudget
+
+            try:
+                self.cautery = Cautery(self.surface, config["tissue"], config["cautery"], self.instrument_fields,
+                                       scheme=config["cautery"]["scheme"])
+            except LayerBudget as exc:
+                raise ConfigError(self.file, "cautery.layers", str(exc)) from None
         if "bleeding" in self.models:
             from scipy.spatial import cKDTree
 
@@ -187,6 +195,7 @@ class Scene:
         if self.cautery is not None:
             with self._timed("cautery"):
                 self.instrument_fields.set_time(self.time_s)
+                self._note_active_tool()
                 self.cautery.step(dt)
         if self.bleeding is not None:
             with self._timed("bleeding"):
@@ -194,6 +203,36 @@ class Scene:
         self.steps += 1
         t0, n0, _ = self._time_base
         self.time_s = t0 + (self.steps - n0) * dt  # = steps * dt exactly while dt never changed
+
+    def _note_active_tool(self) -> None:
+        """Remember the energized heating tool last seen (the first when several are) and which way it moved."""
+        for tool, pose in zip(self.instrument_fields.instruments, self.instrument_fields.poses):
+            if pose.energized:
+                position = np.asarray(pose.position_mm, np.float64)
+                name, last, moved = self._active_tool or (None, position, np.zeros(3))
+                step = position - last
+                if name == tool.name and np.linalg.norm(step) > 0.05:  # mm: a move, not jitter
+                    moved = step
+                elif name != tool.name:
+                    moved = np.zeros(3)
+                self._active_tool = (tool.name, position, moved)
+                return
+
+    def burn_section(self, half_length_mm: float = 4.0, samples: int = 81):
+        """sims.section.BurnSection across the stroke of the most recently energized heating tool (along the texture's
+        u direction while it has not moved), or None before any tool was energized or without the cautery model."""
+        if self.cautery is None or self._active_tool is None:
+            return None
+        if self._section_sampler is None:
+            from sims.section import SectionSampler
+
+            self._section_sampler = SectionSampler(self.surface)
+        name, position, moved = self._active_tool
+        r, c = self._section_sampler.nearest(position[None])[0]
+        across = np.cross(self.surface.normal[r, c].astype(np.float64), moved)  # zero while it has not moved
+        section = self._section_sampler.section(self.cautery, position, across, half_length_mm, samples)
+        section.tool = name
+        return section
 
     @contextlib.contextmanager
     def _timed(self, model: str):
@@ -495,6 +534,7 @@ class Scene:
         self._displayed_at = 0.0
         if self.cautery is not None:
             self.cautery.reset()
+            self._active_tool = None
         if self.bleeding is not None:
             self.bleeding.reset()
 
@@ -513,7 +553,10 @@ class Scene:
         """Arrays of DESIGN section 4 for the models this scene runs."""
         state = {"texel_position_mm": self.surface.position_mm, "texel_mask": self.surface.mask}
         if self.cautery is not None:
-            state.update(temperature_c=self.cautery.temperature_c(), damage_omega=self.cautery.damage_omega(), char=self.cautery.char_level())
+            cautery = self.cautery
+            state.update(temperature_c=cautery.temperature_c(), damage_omega=cautery.damage_omega(), char=cautery.char_level(),
+                         temperature_depth_c=cautery.temperature_depth_c(), damage_omega_depth=cautery.damage_omega_depth(),
+                         layer_depth_mm=cautery.layer_depth_mm.astype(np.float32), coagulation_depth_mm=cautery.coagulation_depth_mm())
         if self.bleeding is not None:
             state.update(self.bleeding.particle_arrays())
         return state

@@ -30,5 +30,14 @@ def tissue_values(**changes) -> dict:
 
 def cautery_values(**changes) -> dict:
     values = {name: spec.default for name, spec in params.CAUTERY.items()}
+    values["bottom"] = "body"
     values.update(changes)
     return values
+
+
+def surface_only_values(**changes) -> dict:
+    """Cautery values under which a field uniform in depth stays uniform: insulated bottom, no loss to air. The layered
+    model then spreads heat exactly as a surface-only one."""
+    from sims.cautery import SURFACE_ONLY
+
+    return cautery_values(**{**SURFACE_ONLY, **changes})

@@ -16,13 +16,13 @@ from sims.config import REPO_ROOT, ConfigError, load_scene_config
 from sims.instruments import Instrument, InstrumentFields
 from sims.scene import Scene
 from sims.surface import build_surface, load_mesh
-from tests.helpers import cautery_values, plane_mesh, tissue_values
+from tests.helpers import cautery_values, plane_mesh, surface_only_values, tissue_values
 
 BODY = 37.0
 
 
 def implicit(surface, tools=(), **tissue_changes):
-    return Cautery(surface, tissue_values(**tissue_changes), cautery_values(), InstrumentFields(list(tools)), scheme="implicit")
+    return Cautery(surface, tissue_values(**tissue_changes), surface_only_values(), InstrumentFields(list(tools)), scheme="implicit")
 
 
 def ball(temperature_c=400.0, radius_mm=2.0, position_mm=(0.0, 0.0, 1.5)) -> Instrument:
@@ -44,7 +44,7 @@ def test_gaussian_on_plane_matches_analytic(dt, bound):
     cautery.set_temperature(BODY + analytic.gaussian_on_plane(r2, amplitude, sigma, 0.0, 0.0))
     for _ in range(int(round(seconds / dt))):
         cautery.step(dt)
-        assert 1 <= cautery.last_iterations < cautery.max_iterations and cautery.last_residual <= CG_TOLERANCE
+        assert 1 <= cautery.last_iterations < cautery.max_iterations * cautery.layer_count and cautery.last_residual <= CG_TOLERANCE
     exact = analytic.gaussian_on_plane(r2, amplitude, sigma, cautery.diffusivity_mm2_s, seconds)
     error = np.abs(cautery.temperature_c() - BODY - exact)[surface.mask].max() / exact.max()
     assert exact.max() < 0.35 * amplitude  # it did spread
@@ -87,8 +87,8 @@ def test_bounded_at_a_time_step_hundreds_of_explicit_substeps_long():
         field = cautery.temperature_c()[surface.mask]
         assert np.isfinite(field).all()
         assert field.min() >= 20.0 - 1e-3 and field.max() <= 400.0 + 1e-3
-        assert cautery.last_iterations < 500 and cautery.last_residual <= CG_TOLERANCE  # measured 82..203 iterations
-    assert cautery.temperature_c()[128, 128] > 300.0  # the tool heated the tissue under it
+        assert cautery.last_iterations < 500 * cautery.layer_count and cautery.last_residual <= CG_TOLERANCE  # per layer 82..203
+    assert cautery.temperature_c()[128, 128] > 250.0  # the tool heated the tissue under it (268 C: heat also goes into depth)
     assert field.min() > 37.0  # perfusion and conduction pulled the cold texels up toward body temperature
     assert np.isfinite(cautery.damage_omega()).all() and cautery.damage_omega()[128, 128] > 1.0
 
@@ -98,7 +98,7 @@ def test_iteration_cap_keeps_the_step_finite_and_bounded():
     for _ in range(3):
         cautery.step(1.0)
         field = cautery.temperature_c()[surface.mask]
-        assert cautery.last_iterations == 5 and cautery.last_residual > CG_TOLERANCE  # the cap was hit
+        assert cautery.last_iterations == 5 * cautery.layer_count and cautery.last_residual > CG_TOLERANCE  # the cap was hit
         assert np.isfinite(field).all()
         assert field.min() >= 20.0 - 1e-3 and field.max() <= 400.0 + 1e-3
 

@@ -8,9 +8,10 @@ TIME_STEPS_S = (0.001, 0.002, 0.005, 0.01, 0.02, 0.05)
 
 
 def _cautery(tip_c: float | None, start_c: float):
-    """A 4 x 4 mm liver plane at start_c with no perfusion; with tip_c, a huge energized ball touches every texel."""
+    """A 4 x 4 mm liver plane of one insulated 1 mm layer at start_c with no perfusion; with tip_c, a huge energized ball
+    touches every texel (the layer then relaxes toward tip_c at Cautery.contact_rate_1_s)."""
     from sims import params
-    from sims.cautery import Cautery
+    from sims.cautery import SURFACE_ONLY, Cautery
     from sims.instruments import Instrument, InstrumentFields
 
     surface = build_plane(4.0, 16)
@@ -22,7 +23,8 @@ def _cautery(tip_c: float | None, start_c: float):
             "position_mm": [0.0, 0.0, -99.0], "direction": [0, 0, -1], "roll_deg": 0.0, "energized": True,
             "tip_temperature_c": tip_c, "path": [],
         }))
-    cautery = Cautery(surface, tissue, {name: spec.default for name, spec in params.CAUTERY.items()}, InstrumentFields(tools))
+    layer = {**{name: spec.default for name, spec in params.CAUTERY.items()}, **SURFACE_ONLY, "layers": 1, "depth_mm": 1.0}
+    cautery = Cautery(surface, tissue, layer, InstrumentFields(tools))
     return cautery, tissue
 
 
@@ -33,7 +35,7 @@ def time_to_omega_one(tip_c: float | None, start_c: float, dt_s: float) -> float
     while True:
         cautery.step(dt_s)
         t += dt_s
-        omega = float(cautery.omega[8, 8])
+        omega = float(cautery.omega_depth[8 * 16 + 8, 0])
         if omega >= 1.0:
             return t - dt_s + dt_s * (1.0 - previous) / (omega - previous)
         previous = omega

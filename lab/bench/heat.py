@@ -22,13 +22,13 @@ def gaussian_run(size: int, dt_s: float, seconds: float, scheme: str = "explicit
     """A Gaussian (sigma 0.5 mm, 50 C above body) on a 40 x 40 mm liver plane, no perfusion, no tool, diffused for
     `seconds` and compared with the analytic solution. u_scale < 1 stretches texels 1/u_scale : 1 along x."""
     from sims import params
-    from sims.cautery import Cautery
+    from sims.cautery import SURFACE_ONLY, Cautery
     from sims.instruments import InstrumentFields
     from sims.surface import build_surface
 
     surface = build_surface(plane_mesh(SIDE_MM, SIDE_MM, u_scale=u_scale), size)
     tissue = dict(params.TISSUE_PRESETS["liver"], perfusion_1_s=0.0)
-    cautery_params = {name: spec.default for name, spec in params.CAUTERY.items()}
+    cautery_params = {**{name: spec.default for name, spec in params.CAUTERY.items()}, **SURFACE_ONLY}
     kwargs = {} if scheme == "explicit" else {"scheme": scheme}
     cautery = Cautery(surface, tissue, cautery_params, InstrumentFields([]), **kwargs)
     r2 = (surface.position_mm[..., :2] ** 2).sum(axis=2)
@@ -67,12 +67,12 @@ def sphere_run(size: int, dt_s: float, seconds: float, scheme: str = "explicit")
     """T = body + 10 cos(theta) on sphere_surface(size) (k 5 W/(m K), no perfusion) against the analytic decay of the
     l = 1 mode: the amplitude ratio measured and exact, and the relative error of the decay rate."""
     from sims import params
-    from sims.cautery import Cautery
+    from sims.cautery import SURFACE_ONLY, Cautery
     from sims.instruments import InstrumentFields
 
     surface = sphere_surface(size)
     tissue = dict(params.TISSUE_PRESETS["liver"], perfusion_1_s=0.0, conductivity_w_mk=SPHERE_CONDUCTIVITY_W_MK)
-    cautery_params = {name: spec.default for name, spec in params.CAUTERY.items()}
+    cautery_params = {**{name: spec.default for name, spec in params.CAUTERY.items()}, **SURFACE_ONLY}
     cautery = Cautery(surface, tissue, cautery_params, InstrumentFields([]), scheme=scheme)
     position = surface.position_mm.astype(np.float64)
     cos_theta = position[..., 2] / np.maximum(np.linalg.norm(position, axis=-1), 1e-9)

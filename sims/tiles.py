@@ -1,0 +1,140 @@
+"""Tiles of texels that sleep and wake, so a model's cost follows where something happens.
+
+The texture is cut into TILE x TILE texel tiles. A model steps only the awake tiles (`active`, `count`), each as
+deep as `depth` says (layers of a layered field; 1 for a flat one). After a step the model scans its awake tiles and
+writes into `hot` the deepest layer that is off rest (-1: all at rest); before the next step it writes into `wanted`
+the depth a tile needs for its own reasons (a tool within reach). plan() then wakes every tile that is wanted, hot,
+next to a hot tile (within `reach_tiles`: heat moves at most one texel per explicit substep) or joined to a hot tile
+by a UV seam link, each with a depth of the deepest hot layer around it plus `margin` layers (so heat moving down
+always finds a solved layer to go into), and lists them in tile order (the same list, so the same sums, whatever
+the thread count). A tile that goes to sleep keeps its values, which are at rest within the model's tolerance; the
+tiles that fell asleep at this plan are listed in `asleep` (a model with two buffers copies them across once).
+"""
+
+import numpy as np
+import taichi as ti
+
+TILE = 16  # texels per tile side
+
+
+def tile_spheres(position_mm: np.ndarray, mask: np.ndarray, tile: int = TILE) -> tuple[np.ndarray, np.ndarray]:
+    """Per tile (row-major over the tile grid) the centre (mm, (T, 3)) and radius (mm, (T,)) of a ball holding its
+    surface texels; radius -1 for a tile without any."""
+    height, width = mask.shape
+    rows, cols = -(-height // tile), -(-width // tile)
+    centre, radius = np.zeros((rows * cols, 3), np.float32), np.full(rows * cols, -1.0, np.float32)
+    for index in range(rows * cols):
+        tr, tc = divmod(index, cols)
+        block = (slice(tr * tile, (tr + 1) * tile), slice(tc * tile, (tc + 1) * tile))
+        points = position_mm[block][mask[block]].astype(np.float64)
+        if len(points):
+            middle = 0.5 * (points.min(axis=0) + points.max(axis=0))
+            centre[index] = middle
+            radius[index] = np.linalg.norm(points - middle, axis=1).max()
+    return centre, radius
+
+
+def tile_links(link_start: np.ndarray, link_to: np.ndarray, shape: tuple[int, int], tile: int = TILE):
+    """Tiles joined by texel links (seams), CSR over tiles: (start (T + 1,) int32, partner (P,) int32), both ways."""
+    height, width = shape
+    cols = -(-width // tile)
+    count = (-(-height // tile)) * cols
+    sources = np.repeat(np.arange(len(link_start) - 1), np.diff(link_start))
+
+    def tile_of(flat):
+        return (flat // width) // tile * cols + (flat % width) // tile
+
+    pairs = np.unique(np.stack([tile_of(sources), tile_of(np.asarray(link_to[: len(sources)]))], axis=1), axis=0)
+    pairs = pairs[pairs[:, 0] != pairs[:, 1]]
+    start = np.zeros(count + 1, np.int64)
+    np.add.at(start, pairs[:, 0] + 1, 1)
+    return np.cumsum(start).astype(np.int32), pairs[:, 1].astype(np.int32)
+
+
+@ti.data_oriented
+class TileSchedule:
+    """Awake tiles of a (H, W) texture and how deep each is solved; see the module docstring."""
+
+    def __init__(self, mask: np.ndarray, link_start: np.ndarray, link_to: np.ndarray, max_depth: int, tile: int = TILE):
+        self.tile, self.max_depth = tile, int(max_depth)
+        self.height, self.width = mask.shape
+        self.rows, self.cols = -(-self.height // tile), -(-self.width // tile)
+        count = self.rows * self.cols
+        self.tiles = count
+        occupied = np.array([mask[tr * tile:(tr + 1) * tile, tc * tile:(tc + 1) * tile].any()
+                             for tr in range(self.rows) for tc in range(self.cols)], np.int32)
+        self.occupied = ti.field(ti.i32, count)
+        self.occupied.from_numpy(occupied)
+        self.surface_tiles = int(occupied.sum())  # tiles holding surface texels
+        self.depth = ti.field(ti.i32, count)   # layers solved per tile this step, 0 asleep
+        self.hot = ti.field(ti.i32, count)     # deepest layer off rest at the last scan, -1 none
+        self.wanted = ti.field(ti.i32, count)  # depth the model asks for (a tool within reach), 0 none
+        self.planned = ti.field(ti.i32, count)
+        self.active = ti.field(ti.i32, count)  # awake tiles, in tile order
+        self.asleep = ti.field(ti.i32, count)  # tiles that were awake in the last step and are not now
+        self.count = ti.field(ti.i32, (2,))    # awake, fell asleep
+        start, partner = tile_links(link_start, link_to, mask.shape, tile)
+        self.partner_start = ti.field(ti.i32, count + 1)
+        self.partner = ti.field(ti.i32, max(len(partner), 1))
+        self.partner_start.from_numpy(start)
+        if len(partner):
+            self.partner.from_numpy(partner)
+        self.awake = 0        # tiles awake this step (copies of count, read once per plan)
+        self.fell_asleep = 0  # tiles in `asleep`
+        self.hot.fill(-1)
+
+    @ti.func
+    def texel(self, i, j):
+        """(tile, row, column, inside) of the j-th texel (0 <= j < TILE^2) of the i-th awake tile."""
+        return self.texel_of(self.active[i], j)
+
+    @ti.func
+    def texel_of(self, t, j):
+        """(tile, row, column, inside) of the j-th texel (0 <= j < TILE^2) of tile t."""
+        r = (t // self.cols) * self.tile + j // self.tile
+        c = (t % self.cols) * self.tile + j % self.tile
+        return t, r, c, (r < self.height) and (c < self.width)
+
+    def plan(self, reach_tiles: int, margin: int, wake_all: bool) -> int:
+        """Decide this step's awake tiles (see the module docstring); wake_all: every tile with surface texels, at
+        full depth. Returns how many are awake."""
+        self._plan(int(reach_tiles), int(margin), int(wake_all))
+        counts = self.count.to_numpy()
+        self.awake, self.fell_asleep = int(counts[0]), int(counts[1])
+        return self.awake
+
+    @ti.kernel
+    def _plan(self, reach: ti.i32, margin: ti.i32, wake_all: ti.i32):
+        for t in range(self.tiles):
+            tr, tc = t // self.cols, t % self.cols
+            deepest = -1
+            for dr, dc in ti.ndrange((-reach, reach + 1), (-reach, reach + 1)):
+                nr, nc = tr + dr, tc + dc
+                if 0 <= nr < self.rows and 0 <= nc < self.cols:
+                    deepest = ti.max(deepest, self.hot[nr * self.cols + nc])
+            for m in range(self.partner_start[t], self.partner_start[t + 1]):
+                deepest = ti.max(deepest, self.hot[self.partner[m]])
+            depth = self.wanted[t]
+            if deepest >= 0:
+                depth = ti.max(depth, deepest + 1 + margin)
+            if wake_all:
+                depth = self.max_depth
+            self.planned[t] = ti.min(depth, self.max_depth) * self.occupied[t]
+        ti.loop_config(serialize=True)
+        for t in range(self.tiles):
+            if t == 0:
+                self.count[0] = 0
+                self.count[1] = 0
+            if self.planned[t] > 0:
+                self.active[self.count[0]] = t
+                self.count[0] += 1
+            elif self.depth[t] > 0:
+                self.asleep[self.count[1]] = t
+                self.count[1] += 1
+            self.depth[t] = self.planned[t]
+            self.hot[t] = -1
+            self.wanted[t] = 0
+
+    def awake_fraction(self) -> float:
+        """Share of the tiles with surface texels that are awake this step."""
+        return self.awake / max(self.surface_tiles, 1)

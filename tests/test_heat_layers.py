@@ -214,3 +214,30 @@ def test_an_old_scene_with_a_heated_layer_loads_with_a_note(tmp_path):
     assert len(config["notes"]) == 1 and config["notes"][0].startswith("cautery.heated_layer_mm: ")
     assert "cautery.layers" in config["notes"][0]
     assert load_scene_config(REPO_ROOT / "scenes/default.yaml")["notes"] == []
+
+
+def test_the_cross_section_shows_the_burn_under_the_last_energized_tool():
+    """Scene.burn_section cuts across the ball's stroke where it is; the picture outlines the coagulated zone in white
+    and is as deep as the burn (the browser's Burn cross-section folder shows this picture)."""
+    from lab.section_view import PIXELS_PER_MM, MARGIN_LEFT, MARGIN_TOP, section_image
+    from sims.config import REPO_ROOT
+    from sims.scene import Scene
+
+    scene = Scene.from_file(REPO_ROOT / "scenes/default.yaml", ["texture_size=128"])
+    assert scene.burn_section() is None  # no tool energized yet
+    while scene.time_s < 2.0:
+        scene.step()
+    section = scene.burn_section()
+    assert section.tool == "ball_electrode"
+    ball = np.asarray(scene.instrument("ball_electrode").pose_at(scene.time_s).position_mm)
+    assert np.linalg.norm(section.centre_mm - ball) < 2.0  # under the tool
+    assert abs(section.direction @ np.array([1.0, 0.0, 0.0])) < 0.3  # across the stroke (it moves along +x)
+    middle = len(section.distance_mm) // 2
+    assert section.coagulation_depth_mm[middle] > 0.2 and section.coagulation_depth_mm[0] == 0.0
+    image = section_image(section)
+    column = MARGIN_LEFT + int(round(float(section.distance_mm[-1]) * PIXELS_PER_MM))  # distance 0
+    white = np.nonzero((image[MARGIN_TOP:, column] > 240).all(axis=1))[0]
+    deepest_white_mm = (white.max() + 0.5) / PIXELS_PER_MM
+    assert abs(deepest_white_mm - section.coagulation_depth_mm[middle]) < 0.1  # the outline sits at the burn's depth
+    scene.reset()
+    assert scene.burn_section() is None

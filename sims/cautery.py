@@ -65,7 +65,7 @@ TOOL_DEPTH = 3              # layers solved at least under a tool within reach
 # Cautery settings under which a field uniform in depth stays uniform (insulated bottom, no loss to air): the layered
 # model then spreads heat exactly as a surface-only model, which the analytic surface references need.
 SURFACE_ONLY = {"bottom": "insulated", "surface_loss_w_m2k": 0.0}
-MAX_FIELD_BYTES = 2 * 1024**3  # layered fields (two temperature buffers, damage, char) a scene may allocate
+MAX_FIELD_BYTES = 1_000_000_000  # bytes of layered fields (two temperature buffers, damage, char) a scene may allocate
 # Arrhenius rates are tabulated every RATE_STEP_C from the damage threshold up to RATE_TOP_C (above every temperature the
 # sliders allow: tip 400 C) and interpolated linearly: ln rate has slope Ea / (R T^2) <= 0.3 per C above 43 C for the
 # presets, so the relative error is below (0.3 RATE_STEP_C)^2 / 8 = 1e-6, and a step costs a lookup, not an exp per
@@ -127,6 +127,14 @@ def layered_bytes(texture_size: int, layer_count: int) -> int:
     return 16 * int(texture_size) ** 2 * int(layer_count)
 
 
+def check_layer_budget(texture_size: int, layer_count: int) -> None:
+    """LayerBudget when the layered fields would exceed MAX_FIELD_BYTES (e.g. 16 layers at 2048^2: 1.07 GB)."""
+    needed = layered_bytes(texture_size, layer_count)
+    if needed > MAX_FIELD_BYTES:
+        raise LayerBudget(f"{layer_count} layers under {texture_size} x {texture_size} texels need {needed / 1e9:.2f} GB "
+                          f"(at most {MAX_FIELD_BYTES / 1e9:.2f}); use fewer cautery.layers or a smaller texture_size")
+
+
 @ti.data_oriented
 class Cautery:
     """Temperature, damage and char in layers under a TissueSurface, heated by InstrumentFields."""
@@ -147,10 +155,7 @@ class Cautery:
         self.layer_depth_mm = layers.layer_centres(self.faces_mm)  # (L,) centre depths
         layers.column_coupling(self.faces_mm, self.bottom)  # checks the bottom condition
         shape = surface.mask.shape
-        needed = layered_bytes(max(shape), self.layer_count)
-        if needed > MAX_FIELD_BYTES:
-            raise LayerBudget(f"{self.layer_count} layers under {shape[1]} x {shape[0]} texels need {needed / 1e9:.1f} GB "
-                              f"(at most {MAX_FIELD_BYTES / 1e9:.1f}); use fewer cautery.layers or a smaller texture_size")
+        check_layer_budget(max(shape), self.layer_count)
         self.last_iterations = 0   # CG iterations (implicit, all layers) or substeps (explicit) of the last step
         self.last_residual = 0.0   # implicit: largest relative residual of the last step's layer solves
         deep = (shape[0] * shape[1], self.layer_count)  # (texel r * W + c, layer): a column is contiguous

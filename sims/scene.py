@@ -125,6 +125,13 @@ class Scene:
         self.config = config
         self.file = config["scene_file"]
         size = config["texture_size"]
+        if "cautery" in config["models"]:  # before anything is read or built: a refused size costs nothing
+            from sims.cautery import LayerBudget, check_layer_budget
+
+            try:
+                check_layer_budget(size, config["cautery"]["layers"])
+            except LayerBudget as exc:
+                raise ConfigError(self.file, "cautery.layers", str(exc)) from None
         inputs = inputs or load_inputs(config)
         mesh, textures = inputs.mesh, inputs.textures
         self.arch = backend.init(arch)
@@ -152,13 +159,8 @@ class Scene:
             from sims.instruments import InstrumentFields
 
             self.instrument_fields = InstrumentFields([tool for tool in self.instruments if tool.suction is None])
-            from sims.cautery import LayerBudget
-
-            try:
-                self.cautery = Cautery(self.surface, config["tissue"], config["cautery"], self.instrument_fields,
-                                       scheme=config["cautery"]["scheme"])
-            except LayerBudget as exc:
-                raise ConfigError(self.file, "cautery.layers", str(exc)) from None
+            self.cautery = Cautery(self.surface, config["tissue"], config["cautery"], self.instrument_fields,
+                                   scheme=config["cautery"]["scheme"])
         if "bleeding" in self.models:
             from scipy.spatial import cKDTree
 

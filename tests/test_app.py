@@ -220,9 +220,11 @@ def test_one_click_adds_one_bleed_point_and_clicks_are_capped(lab, hostile):
         run(lab, lambda: len(lab.scene.bleed_points) > count or "at most" in lab.session.notice)
         assert len(lab.scene.bleed_points) <= count + 1
     assert len(lab.scene.bleed_points) == MAX_BLEED_POINTS and "at most" in lab.session.notice
-    for _ in range(MAX_BLEED_POINTS - len(before)):
+    for _ in range(MAX_BLEED_POINTS - len(before)):  # one at a time, as a hand clicks (a burst lost one in CI once)
+        count = len(lab.scene.bleed_points)
         hostile.click_button("Remove last bleed point")
-    run(lab, lambda: [point.name for point in lab.scene.bleed_points] == before)
+        run(lab, lambda: len(lab.scene.bleed_points) < count)
+    assert [point.name for point in lab.scene.bleed_points] == before
     lab.armed_click = False
 
 

@@ -31,7 +31,6 @@ from websockets.frames import Frame, Opcode
 from websockets.typing import Origin, Subprotocol
 from websockets.uri import parse_uri
 
-_QUEUED_FRAMES = 4  # frames websockets keeps unread before it stops reading the socket
 
 
 def decode_frame(frame: bytes) -> list[dict]:
@@ -67,11 +66,16 @@ class RawClient:
     `requests_seen` / `requests_answered` (localStorage reads)."""
 
     def __init__(self, port: int, origin: str | None = None, answer_requests: bool = True, timeout_s: float = 30.0,
-                 host: str = "127.0.0.1", send_camera: bool = True):
+                 host: str = "127.0.0.1", send_camera: bool = True, max_queue: int | None = None, strict: bool = False):
         """port: the viser server's port. origin: the Origin header to send (None: none, as non-browser tools do).
         answer_requests: answer localStorage reads. timeout_s: for opening the connection, s.
         send_camera: send a camera pose at once, as the viser client does; viser counts a client as connected
-        (get_clients, on_client_connect, GUI callbacks) only after its first camera message."""
+        (get_clients, on_client_connect, GUI callbacks) only after its first camera message.
+        max_queue: frames websockets keeps unread before it stops reading the socket (None: no limit). A limit lets
+        stall() back up the server, but a reader that falls behind under load then stops answering the server's pings
+        too, and the server closes the connection after 20 s (a test's clicks were lost that way in CI).
+        strict: a send on a closed connection raises instead of returning False."""
+        self.strict = strict
         self.answer_requests = answer_requests
         self.gui: dict[str, dict] = {}
         self.nodes: dict[str, dict] = {}
@@ -86,7 +90,7 @@ class RawClient:
         self._closing = False
         self._ws = websockets.sync.client.connect(
             f"ws://{host}:{port}", subprotocols=[f"viser-v{viser.__version__}"], origin=origin, compression=None,
-            max_size=None, max_queue=_QUEUED_FRAMES, open_timeout=timeout_s)
+            max_size=None, max_queue=max_queue, open_timeout=timeout_s)
         self._open = True
         self._reader = threading.Thread(target=self._read, name=f"raw-client-{port}", daemon=True)
         self._reader.start()
@@ -100,7 +104,9 @@ class RawClient:
             with self._send_lock:
                 self._ws.send(msgspec.msgpack.encode(message))
             return True
-        except websockets.exceptions.ConnectionClosed:
+        except websockets.exceptions.ConnectionClosed as exc:
+            if self.strict:
+                raise ConnectionError(f"the server closed this client's connection: {exc}") from None
             return False
 
     def send_camera(self, position=(0.0, -100.0, 100.0), look_at=(0.0, 0.0, 0.0)) -> bool:
@@ -164,7 +170,8 @@ class RawClient:
         return self._open
 
     def stall(self) -> None:
-        """Stop reading the socket (a page that hangs): the server's sends to it back up."""
+        """Stop reading (a page that hangs): with max_queue set, websockets then stops reading the socket and the
+        server's sends to it back up."""
         self._reading.clear()
 
     def resume(self) -> None:

@@ -40,7 +40,7 @@ def lab():
 @pytest.fixture()
 def hostile(lab):
     """A raw websocket client, as any page or script can open one (no Origin header: not a browser page)."""
-    client = RawClient(lab.server.get_port())
+    client = RawClient(lab.server.get_port(), strict=True)
     run(lab, lambda: len(lab.server.get_clients()) > 0 and client.gui)
     yield client
     client.close()

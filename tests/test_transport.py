@@ -174,7 +174,7 @@ def _stream_run(server, other: str | None) -> dict:
     from lab.stream import TextureStream
 
     normal, normal_id = _connect(server)
-    extra, extra_id = _connect(server, answer_requests=other != "silent") if other else (None, None)
+    extra, extra_id = _connect(server, answer_requests=other != "silent", max_queue=4) if other else (None, None)
     stream = TextureStream(server, _patch(), tiles=TILES, hide_after_s=HIDE_S, max_pool=POOL, max_tiles_per_s=RATE)
     try:
         image = np.zeros((64, 64, 3), np.uint8)

@@ -35,6 +35,7 @@ FRAME_INTERVAL_S = 1.0 / 30.0       # texture updates at most this often
 STATS_INTERVAL_S = 0.5
 PLOT_SECONDS = 60.0
 REBUILD_HINT = "Changing it restarts the scene (rebuilt with the new value)."
+SECTION_LABEL = "depth against distance (mm)"  # the burn cross-section picture
 TOOL_COLOR, HOT_COLOR = (170, 175, 185), (255, 140, 40)
 ENVIRONMENT_INTENSITY = 0.4
 LOOPBACK_HOSTS = ("127.0.0.1", "localhost", "::1")
@@ -231,7 +232,7 @@ class LabApp:
         if self.scene.cautery is not None:
             with gui.add_folder("Burn cross-section"):
                 self.section_text = gui.add_markdown("energize a tool: the cut across its stroke shows how deep the burn goes")
-                self.section_image = gui.add_image(np.zeros((8, 8, 3), np.uint8), format="png")
+                self.section_image = gui.add_image(np.zeros((8, 8, 3), np.uint8), format="png", label=SECTION_LABEL)
         with gui.add_folder("Stats"):
             self.stats_text = gui.add_markdown("starting...")
             series = {0: viser.uplot.Series(label="t (s)"), 1: viser.uplot.Series(label="max T (C)", stroke="orange"),

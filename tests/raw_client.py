@@ -210,6 +210,10 @@ class RawClient:
             props = message.get("props")
             if "uuid" in message and isinstance(props, dict) and "label" in props:
                 self.gui[props["label"]] = message
+            elif kind == "GuiUpdateMessage":  # the server changed a value or a prop: keep the latest
+                for known in self.gui.values():
+                    if known["uuid"] == message["uuid"]:
+                        known["props"] = {**known["props"], **message.get("updates", {})}
             elif kind == "GuiRemoveMessage":
                 self.gui = {label: m for label, m in self.gui.items() if m["uuid"] != message["uuid"]}
             elif kind == "RemoveSceneNodeMessage":

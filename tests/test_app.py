@@ -204,6 +204,32 @@ def test_poses_and_clicks_that_are_not_finite_are_refused(lab, hostile):
     lab.armed_click = False
 
 
+def test_the_browser_gets_the_burn_cross_section_under_the_ball_while_it_burns(lab, hostile):
+    """The picture in "Burn cross-section" as a page receives it: hot at the surface under the pressed ball, cool
+    down at the bottom, with the burn depth in the stats."""
+    import io
+
+    from PIL import Image
+
+    from lab.app import SECTION_LABEL
+
+    lab.session.reset()
+    run(lab, lambda: lab.scene.time_s > 6.0, timeout_s=120)  # the ball is pressed in from 5 s to 6.5 s
+    assert lab.scene.burn_section().tool == BALL
+
+    def received():
+        data = hostile.wait_for_gui(SECTION_LABEL)["props"].get("_data")
+        picture = np.asarray(Image.open(io.BytesIO(bytes(data))).convert("RGB")) if data else np.zeros((8, 8, 3))
+        return picture if picture.shape[0] > 100 else None
+
+    run(lab, lambda: received() is not None and "burn depth" in lab.stats_text.content)
+    picture = received().astype(int)
+    height, width = picture.shape[:2]
+    top, bottom = picture[int(0.15 * height):int(0.3 * height)], picture[int(0.7 * height):int(0.8 * height)]
+    assert top[..., 0].max() > 200, "no hot tissue under the ball in the picture"
+    assert bottom[:, width // 3:2 * width // 3].sum(axis=-1).mean() < top.sum(axis=-1).mean() - 100
+
+
 def test_one_click_adds_one_bleed_point_and_clicks_are_capped(lab, hostile):
     from lab.session import MAX_BLEED_POINTS
 

@@ -131,8 +131,9 @@ def check_layer_budget(texture_size: int, layer_count: int) -> None:
     """LayerBudget when the layered fields would exceed MAX_FIELD_BYTES (e.g. 16 layers at 2048^2: 1.07 GB)."""
     needed = layered_bytes(texture_size, layer_count)
     if needed > MAX_FIELD_BYTES:
-        raise LayerBudget(f"{layer_count} layers under {texture_size} x {texture_size} texels need {needed / 1e9:.2f} GB "
-                          f"(at most {MAX_FIELD_BYTES / 1e9:.2f}); use fewer cautery.layers or a smaller texture_size")
+        raise LayerBudget(f"{layer_count} layers under {texture_size} x {texture_size} heat texels need {needed / 1e9:.2f} GB "
+                          f"(at most {MAX_FIELD_BYTES / 1e9:.2f}); use fewer cautery.layers, a larger cautery.heat_grid_divisor "
+                          "or a smaller texture_size")
 
 
 @ti.data_oriented
@@ -159,7 +160,7 @@ class Cautery:
         self.last_iterations = 0   # CG iterations (implicit, all layers) or substeps (explicit) of the last step
         self.last_residual = 0.0   # implicit: largest relative residual of the last step's layer solves
         deep = (shape[0] * shape[1], self.layer_count)  # (texel r * W + c, layer): a column is contiguous
-        self.temperatures = [ti.field(ti.f32, deep), ti.field(ti.f32, deep)]  # C per layer: this (sub)step's, the next
+        self.temperature = ti.field(ti.f32, (2,) + deep)  # C per layer, two buffers: this (sub)step's (current), the next
         self.current = 0
         self.omega_depth = ti.field(ti.f32, deep)
         self.char_depth = ti.field(ti.f32, deep)
@@ -167,8 +168,6 @@ class Cautery:
         self.omega = ti.field(ti.f32, shape)                # at the surface
         self.char = ti.field(ti.f32, shape)                 # at the surface
         self.coagulation_depth = ti.field(ti.f32, shape)    # mm
-        self.exchange = ti.field(ti.f32, shape)             # H, W/(m^2 K): tool contact and air
-        self.exchange_target = ti.field(ti.f32, shape)      # T_ext, C
         self.mask = ti.field(ti.i32, shape)
         self.inv_area = ti.field(ti.f32, shape)
         self.weights = ti.Vector.field(8, ti.f32, shape)
@@ -315,9 +314,8 @@ class Cautery:
         t = self.tissue
         start = self.rest_profile_c() + (t["initial_temperature_c"] - t["body_temperature_c"])
         self.set_temperature(np.broadcast_to(start[:, None, None], (self.layer_count,) + self.surface.mask.shape))
-        for field in (self.omega_depth, self.char_depth, self.omega, self.char, self.coagulation_depth, self.exchange):
+        for field in (self.omega_depth, self.char_depth, self.omega, self.char, self.coagulation_depth):
             field.fill(0.0)
-        self.exchange_target.fill(t["body_temperature_c"])
 
     def set_temperature(self, values: np.ndarray) -> None:
         """Set T in C: (H, W) for every layer alike, or (L, H, W) per layer (masked texels stay 0). Wakes every tile."""
@@ -326,7 +324,8 @@ class Cautery:
             values = np.broadcast_to(values, (self.layer_count,) + values.shape)
         mask = self.surface.mask
         self.current = 0
-        self.temperatures[0].from_numpy(_flat_columns(np.where(mask[None], values, 0.0)))
+        columns = _flat_columns(np.where(mask[None], values, 0.0))
+        self.temperature.from_numpy(np.stack([columns, columns]))
         self.surface_temperature.from_numpy(np.where(mask, values[0], 0.0).astype(np.float32))
         self._wake_all = True
         if self.scheme == "implicit":
@@ -338,7 +337,7 @@ class Cautery:
 
     def temperature_depth_c(self) -> np.ndarray:
         """(L, H, W) C per layer."""
-        return self._layers(self.temperatures[self.current])
+        return self._layers(self.temperature.to_numpy()[self.current])
 
     def damage_omega(self) -> np.ndarray:
         """(H, W) Omega at the surface."""
@@ -346,12 +345,12 @@ class Cautery:
 
     def damage_omega_depth(self) -> np.ndarray:
         """(L, H, W) Omega per layer."""
-        return self._layers(self.omega_depth)
+        return self._layers(self.omega_depth.to_numpy())
 
-    def _layers(self, field) -> np.ndarray:
-        """(L, H, W) float32 of a layered field."""
+    def _layers(self, values: np.ndarray) -> np.ndarray:
+        """(L, H, W) float32 of a layered field's values (H * W, L)."""
         height, width = self.surface.mask.shape
-        return np.ascontiguousarray(field.to_numpy().reshape(height, width, self.layer_count).transpose(2, 0, 1))
+        return np.ascontiguousarray(values.reshape(height, width, self.layer_count).transpose(2, 0, 1))
 
     def char_level(self) -> np.ndarray:
         """(H, W) char at the surface."""
@@ -386,32 +385,32 @@ class Cautery:
         awake = self.tiles.plan(max(1, math.ceil(count / TILE)), SPARE_LAYERS, wake_all)
         self._wake_all = False
         if self.tiles.fell_asleep:  # their latest values into the other buffer too (they are not stepped now)
-            self._copy_sleeping(self.temperatures[self.current], self.temperatures[1 - self.current], self.tiles.fell_asleep)
+            self._copy_sleeping(self.current, 1 - self.current, self.tiles.fell_asleep)
         self.last_iterations = count
         if awake == 0:
             return
         body = t["body_temperature_c"]
-        self._exchange(awake, reach, c["contact_conductance_w_m2k"], c["surface_loss_w_m2k"], c["air_temperature_c"], body)
+        surface = (reach, c["contact_conductance_w_m2k"], c["surface_loss_w_m2k"], c["air_temperature_c"], c["sleep_tolerance_c"])
         column = (body, sub * self.perfusion_rate_1_s, self.half_layer_conductance_w_m2k,
                   t["density_kg_m3"] * t["specific_heat_j_kgk"] * self.top_layer_mm * 1e-3,
                   t["damage_threshold_c"], t["char_temperature_c"], t["char_rate_1_s_c"])
         if self.scheme == "implicit":
             self._implicit_lateral(sub)
-            self._substep(self.temperatures[self.current], self.temperatures[1 - self.current], awake, False, sub, 0.0, *column)
+            self._substep(self.current, 1 - self.current, awake, False, 1, sub, 0.0,
+                          *surface, *column)
             self.current = 1 - self.current
         else:
-            for _ in range(count):
-                self._substep(self.temperatures[self.current], self.temperatures[1 - self.current], awake, True, sub,
-                              self.diffusivity_mm2_s, *column)
+            for index in range(count):
+                self._substep(self.current, 1 - self.current, awake, True,
+                              int(index == count - 1), sub, self.diffusivity_mm2_s, *surface, *column)
                 self.current = 1 - self.current
-        self._scan(self.temperatures[self.current], awake, c["sleep_tolerance_c"], t["damage_threshold_c"])
 
     def _implicit_lateral(self, dt_s: float) -> None:
         """Backward Euler for the lateral conduction of every layer (Jacobi-preconditioned CG) into the next buffer."""
         coupling = dt_s * self.diffusivity_mm2_s  # mm^2
         total, worst = 0, 0.0
         for layer in range(self.layer_count):
-            self._take_layer(self.temperatures[self.current], layer)
+            self._take_layer(self.current, layer)
             self._cg_start(self.layer, coupling)
             scale, residual = float(self.sums[BB]), float(self.sums[RR])
             iterations = 0
@@ -427,7 +426,7 @@ class Cautery:
             else:  # a uniform layer: nothing diffuses
                 self.delta.fill(0.0)
             total += iterations
-            self._cg_finish(self.temperatures[1 - self.current], layer)
+            self._cg_finish(1 - self.current, layer)
         self.last_iterations, self.last_residual = total, worst
 
     @ti.kernel
@@ -444,37 +443,37 @@ class Cautery:
             if near:
                 self.tiles.wanted[t] = depth
 
-    @ti.kernel
-    def _exchange(self, awake: ti.i32, reach: ti.f32, contact: ti.f32, air: ti.f32, air_c: ti.f32, body: ti.f32):
-        """Surface exchange H (W/(m^2 K)) and its temperature T_ext per texel of the awake tiles: tools and air."""
-        for i, j in ti.ndrange(awake, TILE * TILE):
-            tile, r, c, inside = self.tiles.texel(i, j)
-            if inside and self.mask[r, c]:
-                touch, heat = 0.0, 0.0
-                for k in range(self.instruments.count * self.tile_near[tile]):
-                    near = (self.position[r, c] - self.instruments.position[k]).norm() < self.instruments.extent[k] + reach
-                    if self.instruments.energized[k] and near:
-                        d = self.instruments.distance(k, self.position[r, c])
-                        w = 0.0
-                        if d <= 0.0:
-                            w = 1.0
-                        elif d < reach:
-                            w = 1.0 - d / reach
-                        touch += w
-                        heat += w * self.instruments.tip_temperature[k]
-                open_air = air * ti.max(1.0 - touch, 0.0)
-                total = contact * touch + open_air
-                self.exchange[r, c] = total
-                self.exchange_target[r, c] = (contact * heat + open_air * air_c) / total if total > 0.0 else body
+    @ti.func
+    def _surface_exchange(self, tile, r, c, reach, contact, air, air_c, body):
+        """(H in W/(m^2 K), T_ext in C) at a texel: the energized tools within reach (w(d) of their signed distance)
+        and the air where they do not touch."""
+        touch, heat = 0.0, 0.0
+        for k in range(self.instruments.count * self.tile_near[tile]):
+            near = (self.position[r, c] - self.instruments.position[k]).norm() < self.instruments.extent[k] + reach
+            if self.instruments.energized[k] and near:
+                d = self.instruments.distance(k, self.position[r, c])
+                w = 0.0
+                if d <= 0.0:
+                    w = 1.0
+                elif d < reach:
+                    w = 1.0 - d / reach
+                touch += w
+                heat += w * self.instruments.tip_temperature[k]
+        open_air = air * ti.max(1.0 - touch, 0.0)
+        total = contact * touch + open_air
+        target = body
+        if total > 0.0:
+            target = (contact * heat + open_air * air_c) / total
+        return total, target
 
     @ti.kernel
-    def _copy_sleeping(self, src: ti.template(), dst: ti.template(), count: ti.i32):
+    def _copy_sleeping(self, src: ti.i32, dst: ti.i32, count: ti.i32):
         for i, j in ti.ndrange(count, TILE * TILE):
             tile, r, c, inside = self.tiles.texel_of(self.tiles.asleep[i], j)
             if inside:
                 f = r * self.mask.shape[1] + c
                 for layer in range(self.layer_count):
-                    dst[f, layer] = src[f, layer]
+                    self.temperature[dst, f, layer] = self.temperature[src, f, layer]
 
     @ti.func
     def _damage_rate(self, mid, t_damage):
@@ -485,13 +484,16 @@ class Cautery:
         return self.rates[i] * (1.0 - a) + self.rates[i + 1] * a
 
     @ti.kernel
-    def _substep(self, src: ti.template(), dst: ti.template(), awake: ti.i32, explicit: ti.template(), dt: ti.f32, alpha: ti.f32,
+    def _substep(self, src: ti.i32, dst: ti.i32, awake: ti.i32, explicit: ti.template(), scan: ti.i32,
+                 dt: ti.f32, alpha: ti.f32, reach: ti.f32, contact: ti.f32, air: ti.f32, air_c: ti.f32, tolerance: ti.f32,
                  body: ti.f32, perfused: ti.f32, half: ti.f32, rho_c_dz0: ti.f32, t_damage: ti.f32,
                  t_char: ti.f32, char_rate: ti.f32):
-        """One (sub)step of the awake tiles, src -> dst: the lateral part (explicit: from src's neighbours; otherwise
-        dst already holds it), then the column solve of the solved layers, damage and char per layer and at the
-        surface face; the layers below are copied. perfused = dt w (w the perfusion rate), half = 2k/dz_0,
-        rho_c_dz0 in J/(m^2 K)."""
+        """One (sub)step of the awake tiles, src -> dst: the surface exchange (_surface_exchange), the lateral part
+        (explicit: from src's neighbours; otherwise dst already holds it), then the column solve of the solved layers,
+        damage and char per layer and at the surface face; the layers below are copied. The step's last substep
+        (scan = 1) also scans each column (_scan_column). perfused = dt w (w the perfusion rate), half = 2k/dz_0,
+        rho_c_dz0 in J/(m^2 K); reach, contact, air, air_c: contact distance (mm), conductances (W/(m^2 K)) and the
+        air's temperature (C)."""
         height, width, count = self.mask.shape[0], self.mask.shape[1], self.layer_count
         for i, j in ti.ndrange(awake, TILE * TILE):
             tile, r, c, inside = self.tiles.texel(i, j)
@@ -508,22 +510,22 @@ class Cautery:
                 for layer in ti.static(range(self.layer_count)):  # unrolled: the columns stay in registers
                     if layer < n:
                         if ti.static(not explicit):
-                            star[layer] = dst[f, layer]
+                            star[layer] = self.temperature[dst, f, layer]
                         else:
-                            t0 = src[f, layer]
+                            t0 = self.temperature[src, f, layer]
                             flux = 0.0
                             for k in ti.static(range(8)):
-                                flux += w[k] * (src[around[k], layer] - t0)
+                                flux += w[k] * (self.temperature[src, around[k], layer] - t0)
                             for m in range(first, last):
-                                flux += self.link_weight[m] * (src[self.link_to[m], layer] - t0)
+                                flux += self.link_weight[m] * (self.temperature[src, self.link_to[m], layer] - t0)
                             star[layer] = t0 + scale * flux
-                exchange, target = self.exchange[r, c], self.exchange_target[r, c]
+                exchange, target = self._surface_exchange(tile, r, c, reach, contact, air, air_c, body)
                 rate = 0.0
                 if exchange > 0.0:
                     rate = exchange * half / (exchange + half) / rho_c_dz0
                 held = body
                 if n < count:
-                    held = src[f, n]
+                    held = self.temperature[src, f, n]
                 # increment form: M delta = b - M T*, the right side from differences (0 for a column at rest, so
                 # rounding scales with the change, and a uniform column with nothing driving it stays exactly uniform)
                 rhs = ti.Vector.zero(ti.f32, ti.static(self.layer_count))
@@ -551,23 +553,25 @@ class Cautery:
                             pivot += dt * rate
                         change = (rhs[layer] + self.up[layer] * above) / pivot
                         t1 = star[layer] + change
-                        dst[f, layer] = t1
-                        mid = 0.5 * (src[f, layer] + t1)
+                        self.temperature[dst, f, layer] = t1
+                        mid = 0.5 * (self.temperature[src, f, layer] + t1)
                         if mid > t_damage:
                             self.omega_depth[f, layer] = ti.min(self.omega_depth[f, layer] + self._damage_rate(mid, t_damage) * dt, OMEGA_MAX)
                         if mid > t_char:
                             self.char_depth[f, layer] = ti.min(self.char_depth[f, layer] + char_rate * (mid - t_char) * dt, 1.0)
                         above = change
                 for layer in range(n, count):
-                    dst[f, layer] = src[f, layer]
+                    self.temperature[dst, f, layer] = self.temperature[src, f, layer]
                 s0 = self.surface_temperature[r, c]
-                s1 = (exchange * target + half * dst[f, 0]) / (exchange + half)
+                s1 = (exchange * target + half * self.temperature[dst, f, 0]) / (exchange + half)
                 self.surface_temperature[r, c] = s1
                 mid = 0.5 * (s0 + s1)
                 if mid > t_damage:
                     self.omega[r, c] = ti.min(self.omega[r, c] + self._damage_rate(mid, t_damage) * dt, OMEGA_MAX)
                 if mid > t_char:
                     self.char[r, c] = ti.min(self.char[r, c] + char_rate * (mid - t_char) * dt, 1.0)
+                if scan:
+                    self._scan_column(dst, tile, r, c, f, n, tolerance, t_damage)
 
     @ti.func
     def _log_omega(self, omega):
@@ -576,32 +580,27 @@ class Cautery:
             value = ti.log(omega)
         return value
 
-    @ti.kernel
-    def _scan(self, temperature: ti.template(), awake: ti.i32, tolerance: ti.f32, t_damage: ti.f32):
-        """Per awake tile the deepest layer off rest or above the damage threshold (into tiles.hot); per texel the
-        coagulation depth: from the surface down to where log Omega, linear between the surface and the layer
-        centres, falls below 0."""
-        for i, j in ti.ndrange(awake, TILE * TILE):
-            tile, r, c, inside = self.tiles.texel(i, j)
-            if inside and self.mask[r, c]:
-                n = self.tiles.depth[tile]
-                f = r * self.mask.shape[1] + c
-                for step in range(n):
-                    layer = n - 1 - step
-                    value = temperature[f, layer]
-                    if ti.abs(value - self.rest[layer]) > tolerance or value > t_damage:  # off rest, or taking damage
-                        ti.atomic_max(self.tiles.hot[tile], layer)
-                        break
-                depth, z_prev = 0.0, 0.0
-                f_prev = self._log_omega(self.omega[r, c])
-                if f_prev >= 0.0:
-                    for layer in range(self.layer_count):
-                        z, value = self.centre_mm[layer], self._log_omega(self.omega_depth[f, layer])
-                        if value < 0.0:
-                            depth = z_prev + (z - z_prev) * f_prev / (f_prev - value)
-                            break
-                        depth, z_prev, f_prev = z, z, value
-                self.coagulation_depth[r, c] = depth
+    @ti.func
+    def _scan_column(self, buffer, tile, r, c, f, n, tolerance, t_damage):
+        """After a step, at one texel of tile: the deepest layer off rest or above the damage threshold (into
+        tiles.hot), and the coagulation depth: from the surface down to where log Omega, linear between the surface and
+        the layer centres, falls below 0."""
+        for step in range(n):
+            layer = n - 1 - step
+            value = self.temperature[buffer, f, layer]
+            if ti.abs(value - self.rest[layer]) > tolerance or value > t_damage:  # off rest, or taking damage
+                ti.atomic_max(self.tiles.hot[tile], layer)
+                break
+        depth, z_prev = 0.0, 0.0
+        f_prev = self._log_omega(self.omega[r, c])
+        if f_prev >= 0.0:
+            for layer in range(self.layer_count):
+                z, value = self.centre_mm[layer], self._log_omega(self.omega_depth[f, layer])
+                if value < 0.0:
+                    depth = z_prev + (z - z_prev) * f_prev / (f_prev - value)
+                    break
+                depth, z_prev, f_prev = z, z, value
+        self.coagulation_depth[r, c] = depth
 
     # --- implicit lateral step: (A + k L) d = -k L T per layer, k = dt alpha, by Jacobi-preconditioned CG ------
     # (M d)_i = (A_i + k sum_j w_ij) d_i - k sum_j w_ij d_j is symmetric positive definite (w_ij = w_ji >= 0,
@@ -740,13 +739,13 @@ class Cautery:
         self._reduce(RZ, 2)  # RZ, RR
 
     @ti.kernel
-    def _take_layer(self, temperature: ti.template(), layer: ti.i32):
+    def _take_layer(self, buffer: ti.i32, layer: ti.i32):
         for r, c in self.layer:
-            self.layer[r, c] = temperature[r * self.mask.shape[1] + c, layer]
+            self.layer[r, c] = self.temperature[buffer, r * self.mask.shape[1] + c, layer]
 
     @ti.kernel
-    def _cg_finish(self, lateral: ti.template(), layer: ti.i32):
-        """The layer plus d, clamped into the layer's bounds at the step's start (maximum principle), into `lateral`."""
+    def _cg_finish(self, buffer: ti.i32, layer: ti.i32):
+        """The layer plus d, clamped into the layer's bounds at the step's start (maximum principle), into temperature buffer `buffer`."""
         for r, c in self.layer:
             if self.mask[r, c]:
                 t1 = self.layer[r, c] + self.delta[r, c]
@@ -754,7 +753,7 @@ class Cautery:
                     t1 = self.sums[LOW]
                 if t1 > self.sums[HIGH]:
                     t1 = self.sums[HIGH]
-                lateral[r * self.mask.shape[1] + c, layer] = t1
+                self.temperature[buffer, r * self.mask.shape[1] + c, layer] = t1
 
     # --- outputs ------------------------------------------------------------------------------
     def metrics(self) -> dict:

@@ -9,6 +9,7 @@ world z (or world y for a vertical tool) perpendicular to the shaft, then rolled
 - mesh: a closed mesh given in local coordinates (mm), distance sampled trilinearly from a grid
 Signed distance is negative inside the instrument.
 """
+import functools
 import hashlib
 import math
 from dataclasses import dataclass, field
@@ -21,6 +22,7 @@ from sims.backend import cache_dir
 
 GRID_PADDING_MM = 3.0  # matches the largest contact distance (sims.params)
 SHAPE_CODES = {"ball": 0, "capsule": 1, "spatula": 2, "mesh": 3}
+POSE_WIDTH = 14  # floats per instrument pose uploaded at once (InstrumentFields.set_poses)
 
 
 def local_frame(direction, roll_deg: float) -> np.ndarray:
@@ -34,6 +36,12 @@ def local_frame(direction, roll_deg: float) -> np.ndarray:
     angle = math.radians(roll_deg)
     x, y = math.cos(angle) * x + math.sin(angle) * y, -math.sin(angle) * x + math.cos(angle) * y
     return np.stack([x, y, z])
+
+
+@functools.lru_cache(maxsize=256)
+def _frame(direction: tuple, roll_deg: float) -> np.ndarray:
+    """local_frame, remembered: a scripted tool keeps its direction and roll for many steps."""
+    return local_frame(direction, roll_deg)
 
 
 @dataclass
@@ -253,6 +261,7 @@ class InstrumentFields:
         self.sdf_cells.from_numpy(cell_counts)
         self.extent.from_numpy(extent)
         self.poses = []
+        self._uploaded = None  # the packed poses last uploaded (set_poses)
         self.set_time(0.0)
 
     def set_time(self, t_s: float) -> None:
@@ -260,20 +269,31 @@ class InstrumentFields:
         self.set_poses([instrument.pose_at(t_s) for instrument in self.instruments])
 
     def set_poses(self, poses: list) -> None:
+        """Upload the poses (one per instrument) in one kernel launch, none when nothing changed since the last."""
         count = max(len(poses), 1)
-        position, rotation = np.zeros((count, 3), np.float32), np.tile(np.eye(3, dtype=np.float32), (count, 1, 1))
-        temperature, energized = np.zeros(count, np.float32), np.zeros(count, np.int32)
+        packed = np.zeros((count, POSE_WIDTH), np.float32)
+        packed[:, 3:12] = np.eye(3, dtype=np.float32).reshape(9)
         for index, pose in enumerate(poses):
-            position[index] = pose.position_mm
-            rotation[index] = local_frame(pose.direction, pose.roll_deg)
-            temperature[index] = pose.tip_temperature_c
-            energized[index] = pose.energized
-        self.position.from_numpy(position)
-        self.rotation.from_numpy(rotation)
-        self.tip_temperature.from_numpy(temperature)
-        self.energized.from_numpy(energized)
+            packed[index, 0:3] = pose.position_mm
+            packed[index, 3:12] = _frame(tuple(np.asarray(pose.direction, np.float64).tolist()), float(pose.roll_deg)).reshape(9)
+            packed[index, 12] = pose.tip_temperature_c
+            packed[index, 13] = pose.energized
+        if self._uploaded is None or not np.array_equal(packed, self._uploaded):
+            self._upload(packed)
+            self._uploaded = packed
         self.poses = poses
-        self.any_energized = bool(energized.any())
+        self.any_energized = bool(packed[:, 13].any())
+
+    @ti.kernel
+    def _upload(self, packed: ti.types.ndarray()):
+        """packed (count, POSE_WIDTH): position (3), rotation rows (9), tip temperature, energized."""
+        for k in range(packed.shape[0]):
+            for i in ti.static(range(3)):
+                self.position[k][i] = packed[k, i]
+                for j in ti.static(range(3)):
+                    self.rotation[k][i, j] = packed[k, 3 + 3 * i + j]
+            self.tip_temperature[k] = packed[k, 12]
+            self.energized[k] = ti.cast(packed[k, 13], ti.i32)
 
     @ti.func
     def distance(self, k, world):

@@ -65,6 +65,9 @@ CAUTERY = _table(
     ParamSpec("surface_loss_w_m2k", "W/(m^2 K)", 10.0, 0.0, 100.0,
               "heat transfer to the air where no tool touches (radiation and natural convection: 9.7 measured by Scott et al. 1990)"),
     ParamSpec("air_temperature_c", "C", 22.0, 0.0, 40.0, "operating-room air temperature"),
+    ParamSpec("heat_grid_divisor", "x", 2, 1, 8,
+              "display texels per heat texel along a side: heat and its layers run on a texture_size / divisor grid, "
+              "read on the display grid by bilinear taps", integer=True),
     ParamSpec("sleep_tolerance_c", "C", 0.05, 0.0, 2.0, "tiles whose every layer is this close to its rest temperature are not stepped"),
 )
 

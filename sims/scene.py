@@ -18,7 +18,7 @@ from sims.config import ConfigError, load_scene_config
 _MODEL_GROUPS = (
     ("", {name: spec for name, spec in params.SIMULATION.items() if name != "duration_s"}, None, {"texture_size"}),
     ("tissue", params.TISSUE, "cautery", set()),
-    ("cautery", params.CAUTERY, "cautery", {"layers", "depth_mm"}),
+    ("cautery", params.CAUTERY, "cautery", {"layers", "depth_mm", "heat_grid_divisor"}),
     ("bleeding", params.BLEEDING, "bleeding", {"capacity"}),
 )
 SHAPE_PARAMETERS = {"ball": ("radius_mm",), "capsule": ("radius_mm", "length_mm"), "spatula": ("width_mm", "thickness_mm", "length_mm"),
@@ -115,6 +115,11 @@ def load_inputs(config: dict) -> SceneInputs:
     return SceneInputs(mesh, textures)
 
 
+def heat_grid_size(texture_size: int, divisor: int) -> int:
+    """Texels per side of the heat grid (cautery.heat_grid_divisor): texture_size / divisor, at least 16."""
+    return max(16, int(math.ceil(texture_size / divisor)))
+
+
 class Scene:
     """Everything a browser or a script does with a scene. Time advances in fixed steps of time_step_s."""
 
@@ -129,7 +134,7 @@ class Scene:
             from sims.cautery import LayerBudget, check_layer_budget
 
             try:
-                check_layer_budget(size, config["cautery"]["layers"])
+                check_layer_budget(heat_grid_size(size, config["cautery"]["heat_grid_divisor"]), config["cautery"]["layers"])
             except LayerBudget as exc:
                 raise ConfigError(self.file, "cautery.layers", str(exc)) from None
         inputs = inputs or load_inputs(config)
@@ -156,11 +161,17 @@ class Scene:
         self._parameters = None  # (tool and point names, parameter table) made by parameters()
         if "cautery" in self.models:
             from sims.cautery import Cautery
+            from sims.heat_display import HeatDisplay
             from sims.instruments import InstrumentFields
+            from sims.resample import GridResampler
+            from sims.surface import surface_at
 
+            heat_size = heat_grid_size(size, config["cautery"]["heat_grid_divisor"])
+            self.heat_surface = self.surface if heat_size == size else surface_at(self.surface, heat_size)
             self.instrument_fields = InstrumentFields([tool for tool in self.instruments if tool.suction is None])
-            self.cautery = Cautery(self.surface, config["tissue"], config["cautery"], self.instrument_fields,
+            self.cautery = Cautery(self.heat_surface, config["tissue"], config["cautery"], self.instrument_fields,
                                    scheme=config["cautery"]["scheme"])
+            self.heat_display = HeatDisplay(self.cautery, None if heat_size == size else GridResampler(self.heat_surface, self.surface))
         if "bleeding" in self.models:
             from scipy.spatial import cKDTree
 
@@ -228,10 +239,10 @@ class Scene:
         if self._section_sampler is None:
             from sims.section import SectionSampler
 
-            self._section_sampler = SectionSampler(self.surface)
+            self._section_sampler = SectionSampler(self.heat_surface)
         name, position, moved = self._active_tool
         r, c = self._section_sampler.nearest(position[None])[0]
-        across = np.cross(self.surface.normal[r, c].astype(np.float64), moved)  # zero while it has not moved
+        across = np.cross(self.heat_surface.normal[r, c].astype(np.float64), moved)  # zero while it has not moved
         section = self._section_sampler.section(self.cautery, position, across, half_length_mm, samples)
         section.tool = name
         return section
@@ -487,7 +498,7 @@ class Scene:
         """1 - exp(-Omega) at a texel; 0 without the cautery model."""
         if self.cautery is None:
             return 0.0
-        return float(1.0 - np.exp(-float(self.cautery.omega[texel_rc])))
+        return float(1.0 - np.exp(-float(self.cautery.omega[self.heat_display.coarse_texel(texel_rc)])))
 
     def bleed_rates(self) -> dict:
         """Current rate (ml/s) of every bleed point, after coagulation of the tissue under it."""
@@ -549,16 +560,13 @@ class Scene:
                 elapsed = self.time_s - self._displayed_at
                 self.bleeding.update_display(float(np.exp(-elapsed / fade_s)) if fade_s > 0 and elapsed >= 0 else 0.0)
                 self._displayed_at = self.time_s
-            return self.composer.compose(self.cautery, self.bleeding)
+            return self.composer.compose(None if self.cautery is None else self.heat_display.refreshed(), self.bleeding)
 
     def state_arrays(self) -> dict:
         """Arrays of DESIGN section 4 for the models this scene runs."""
         state = {"texel_position_mm": self.surface.position_mm, "texel_mask": self.surface.mask}
         if self.cautery is not None:
-            cautery = self.cautery
-            state.update(temperature_c=cautery.temperature_c(), damage_omega=cautery.damage_omega(), char=cautery.char_level(),
-                         temperature_depth_c=cautery.temperature_depth_c(), damage_omega_depth=cautery.damage_omega_depth(),
-                         layer_depth_mm=cautery.layer_depth_mm.astype(np.float32), coagulation_depth_mm=cautery.coagulation_depth_mm())
+            state.update(self.heat_display.arrays())
         if self.bleeding is not None:
             state.update(self.bleeding.particle_arrays())
         return state

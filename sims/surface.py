@@ -136,6 +136,15 @@ def build_surface(mesh: trimesh.Trimesh, size: int) -> TissueSurface:
     return _texel_maps(vertices, faces, uv, owner, size, uv_source)
 
 
+def surface_at(surface: TissueSurface, size: int) -> TissueSurface:
+    """The same triangles and UVs as `surface` rasterised into size x size texel maps (a coarser or finer grid of the
+    same texture space: texel (r, c) of one lies at the same u, v as the matching grid coordinates of the other)."""
+    vertices, faces, uv = (np.asarray(a, np.float64) for a in (surface.vertices_mm, surface.faces, surface.uv))
+    faces = faces.astype(np.int64)
+    owner, _ = _rasterise(vertices, faces, uv, size)
+    return _texel_maps(vertices, faces, uv, owner, size, surface.uv_source)
+
+
 def _skipped_area_fraction(vertices, faces, uv, size) -> float:
     """Fraction of the 3D surface area on triangles the texel maps skip (zero area in UV, too thin, too stretched)."""
     tri = vertices[faces]

@@ -244,10 +244,11 @@ def test_the_cross_section_shows_the_burn_under_the_last_energized_tool():
 
 
 def test_layers_that_would_not_fit_in_memory_are_refused_with_the_key_named():
-    """16 layers at 2048^2 would take 1.07 GB of layered fields: the scene is refused before anything is built."""
+    """16 layers under a 2048^2 heat grid would take 1.07 GB of layered fields: the scene is refused before anything is
+    built (the default heat grid, half as fine, would fit)."""
     from sims.config import ConfigError, REPO_ROOT
     from sims.scene import Scene
 
     with pytest.raises(ConfigError) as error:
-        Scene.from_file(REPO_ROOT / "scenes/default.yaml", ["texture_size=2048", "cautery.layers=16"])
+        Scene.from_file(REPO_ROOT / "scenes/default.yaml", ["texture_size=2048", "cautery.layers=16", "cautery.heat_grid_divisor=1"])
     assert "cautery.layers" in str(error.value) and "1.07 GB" in str(error.value) and "fewer cautery.layers" in str(error.value)

@@ -92,11 +92,11 @@ def test_one_sliver_triangle_does_not_drive_the_substeps_up(tmp_path, capsys):
 
 
 def test_more_substeps_than_the_cap_is_refused_in_one_line(tmp_path, capsys):
-    """A 2 mm plane at 64^2 texels (0.03 mm), k = 5 W/(m K), dt = 0.05 s: about 500 explicit substeps per step
-    (the implicit scheme runs such texels: test_mesh_in_metres_warns_with_its_size)."""
+    """A 2 mm plane with heat on 64^2 texels (0.03 mm), k = 5 W/(m K), dt = 0.05 s: about 500 explicit substeps per
+    step (the implicit scheme runs such texels: test_mesh_in_metres_warns_with_its_size)."""
     mesh = write_obj(tmp_path / "small.obj", *(lambda m: (m.vertices, m.faces, m.visual.uv))(plane_mesh(2.0, 2.0)))
     path = mesh_scene(tmp_path, mesh, duration_s=0.1, time_step_s=0.05, tissue={"preset": "liver", "conductivity_w_mk": 5.0})
-    code, lines = run_cli(capsys, path, "--out", tmp_path / "out")
+    code, lines = run_cli(capsys, path, "--out", tmp_path / "out", "--set", "cautery.heat_grid_divisor=1")
     assert code == 2 and len(lines) == 1, lines
     assert lines[0].startswith(f"error: {path}: cautery.scheme: the explicit heat scheme needs ")
     assert f"over the cap of {MAX_SUBSTEPS}" in lines[0] and "use cautery.scheme=implicit" in lines[0]

@@ -493,7 +493,7 @@ class Cautery:
         damage and char per layer and at the surface face; the layers below are copied. The step's last substep
         (scan = 1) also scans each column (_scan_column). perfused = dt w (w the perfusion rate), half = 2k/dz_0,
         rho_c_dz0 in J/(m^2 K); reach, contact, air, air_c: contact distance (mm), conductances (W/(m^2 K)) and the
-        air's temperature (C)."""
+        air's temperature (C); tolerance: the sleep tolerance (C) the scan uses."""
         height, width, count = self.mask.shape[0], self.mask.shape[1], self.layer_count
         for i, j in ti.ndrange(awake, TILE * TILE):
             tile, r, c, inside = self.tiles.texel(i, j)

@@ -13,7 +13,7 @@ SURFACE_FIELDS = ("surface_temperature", "omega", "char", "coagulation_depth")  
 
 @ti.data_oriented
 class HeatDisplay:
-    """Display-grid copies of a Cautery's surface fields (refresh() fills them) and its arrays at display resolution.
+    """Display-grid copies of a Cautery's surface fields (refreshed() fills them) and its arrays at display resolution.
     With the same grid (resampler None) everything is the cautery's own."""
 
     def __init__(self, cautery, resampler: GridResampler | None):

@@ -40,7 +40,7 @@ import taichi as ti
 
 from sims import layers
 from sims.seams import seam_links
-from sims.tiles import TILE, TileSchedule, tile_spheres
+from sims.tiles import TILE, WAKE_HALO_TEXELS, TileSchedule, tile_spheres
 
 GAS_CONSTANT = 8.314462618  # J/(mol K)
 KELVIN = 273.15
@@ -382,7 +382,7 @@ class Cautery:
         if self.instruments.any_energized or self._tools_were_near:
             self._want_near_tools(reach, min(TOOL_DEPTH, self.layer_count))
             self._tools_were_near = self.instruments.any_energized
-        awake = self.tiles.plan(max(1, math.ceil(count / TILE)), SPARE_LAYERS, wake_all)
+        awake = self.tiles.plan(math.ceil(max(count, WAKE_HALO_TEXELS) / TILE), SPARE_LAYERS, wake_all)
         self._wake_all = False
         if self.tiles.fell_asleep:  # their latest values into the other buffer too (they are not stepped now)
             self._copy_sleeping(self.current, 1 - self.current, self.tiles.fell_asleep)
@@ -483,6 +483,14 @@ class Cautery:
         a = x - i
         return self.rates[i] * (1.0 - a) + self.rates[i + 1] * a
 
+    @ti.func
+    def _column(self, buffer, f):
+        """(L,) temperatures of texel f's column in a buffer, unrolled so the column stays in registers."""
+        column = ti.Vector.zero(ti.f32, ti.static(self.layer_count))
+        for layer in ti.static(range(self.layer_count)):
+            column[layer] = self.temperature[buffer, f, layer]
+        return column
+
     @ti.kernel
     def _substep(self, src: ti.i32, dst: ti.i32, awake: ti.i32, explicit: ti.template(), scan: ti.i32,
                  dt: ti.f32, alpha: ti.f32, reach: ti.f32, contact: ti.f32, air: ti.f32, air_c: ti.f32, tolerance: ti.f32,
@@ -507,18 +515,16 @@ class Cautery:
                 around = ti.Vector.zero(ti.i32, 8)  # the neighbours' texel indices (clamped at the texture border)
                 for k in ti.static(range(8)):
                     around[k] = ti.min(ti.max(r + NEIGHBOURS[k][0], 0), height - 1) * width + ti.min(ti.max(c + NEIGHBOURS[k][1], 0), width - 1)
-                for layer in ti.static(range(self.layer_count)):  # unrolled: the columns stay in registers
-                    if layer < n:
-                        if ti.static(not explicit):
-                            star[layer] = self.temperature[dst, f, layer]
-                        else:
-                            t0 = self.temperature[src, f, layer]
-                            flux = 0.0
-                            for k in ti.static(range(8)):
-                                flux += w[k] * (self.temperature[src, around[k], layer] - t0)
-                            for m in range(first, last):
-                                flux += self.link_weight[m] * (self.temperature[src, self.link_to[m], layer] - t0)
-                            star[layer] = t0 + scale * flux
+                if ti.static(not explicit):
+                    star = self._column(dst, f)
+                else:  # every layer, solved or not: without a branch per layer the stencil vectorises along the column
+                    t0 = self._column(src, f)
+                    flux = ti.Vector.zero(ti.f32, ti.static(self.layer_count))
+                    for k in ti.static(range(8)):
+                        flux += w[k] * (self._column(src, around[k]) - t0)
+                    for m in range(first, last):  # seam links (few texels have any)
+                        flux += self.link_weight[m] * (self._column(src, self.link_to[m]) - t0)
+                    star = t0 + scale * flux
                 exchange, target = self._surface_exchange(tile, r, c, reach, contact, air, air_c, body)
                 rate = 0.0
                 if exchange > 0.0:

@@ -14,7 +14,8 @@ tiles that fell asleep at this plan are listed in `asleep` (a model with two buf
 import numpy as np
 import taichi as ti
 
-TILE = 16  # texels per tile side
+TILE = 8  # texels per tile side
+WAKE_HALO_TEXELS = 16  # awake texels at least this far around a hot tile: the tails of a spreading bump keep moving
 
 
 def tile_spheres(position_mm: np.ndarray, mask: np.ndarray, tile: int = TILE) -> tuple[np.ndarray, np.ndarray]:

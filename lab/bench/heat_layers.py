@@ -9,6 +9,7 @@ import time
 import numpy as np
 
 from lab.bench.common import build_plane, pyplot, save
+from sims.tiles import TILE
 
 SAMPLE_TIMES_S = (2.0, 7.0, 12.0, 32.0, 62.0)
 AFTER_LIFT_OFF = SAMPLE_TIMES_S[1:]
@@ -187,7 +188,7 @@ def render(results: dict) -> list[str]:
         lines.append(f"| {r['layers']} | {r['size']}² | {r['texel_mm']:.3f} | {r['top_layer_mm']:.3f} | {e['surface_c']:.2f} | "
                      f"{100 * e['area']:+.1f} % | {100 * e['depth']:+.1f} % | {r['ms_per_step']:.2f} | "
                      f"{'*' if (r['layers'], r['size']) in pareto_set else ''} |")
-    lines += ["", "Sleeping tiles: the same contact on a 24 mm plane (128², tiles of 16² texels), by sleep tolerance:", "",
+    lines += ["", f"Sleeping tiles: the same contact on a 24 mm plane (128², tiles of {TILE}² texels), by sleep tolerance:", "",
               "| tolerance (C) | tiles awake (mean) | ms/step | ΔT after lift-off (C) | area | depth |", "|---|---|---|---|---|---|"]
     for r in results["sleeping"]:
         e = r["error"]

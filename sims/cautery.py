@@ -222,7 +222,7 @@ class Cautery:
             self.interleaved = ti.lang.impl.current_cfg().arch not in (ti.x64, ti.arm64)  # GPU: adjacent threads, adjacent texels
         self._column_key = None  # parameters the column tables were made for
         self._tools_were_near = False  # tile_near may hold ones
-        self._wake_all = True
+        self._wake_everything()
         self.reset()
 
     # --- parameters ---------------------------------------------------------------------------
@@ -300,7 +300,7 @@ class Cautery:
         for field, values in ((self.up, up), (self.down, down), (self.pivot, pivot), (self.carry, carry)):
             field.from_numpy(values.astype(np.float32))
         self.rest.from_numpy(self.rest_profile_c().astype(np.float32))
-        self._wake_all = True
+        self._wake_everything()
 
     def rest_profile_c(self) -> np.ndarray:
         """(L,) C: the steady column under perfusion, the bottom and the air loss, no tool."""
@@ -327,9 +327,18 @@ class Cautery:
         columns = _flat_columns(np.where(mask[None], values, 0.0))
         self.temperature.from_numpy(np.stack([columns, columns]))
         self.surface_temperature.from_numpy(np.where(mask, values[0], 0.0).astype(np.float32))
-        self._wake_all = True
+        self._wake_everything()
         if self.scheme == "implicit":
             self.delta.fill(0.0)  # the implicit solve starts from the last increment; a new state from 0
+
+    def _wake_everything(self) -> None:
+        """The next step steps every tile at full depth, and every tile counts as changed for the look."""
+        self._wake_all = True
+        self.tiles.mark_all_changed()
+
+    def take_changed_tiles(self) -> np.ndarray:
+        """(T,) bool over self.tiles: the tiles whose fields changed since the last call (one reader: the look)."""
+        return self.tiles.take_changed()
 
     def temperature_c(self) -> np.ndarray:
         """(H, W) C at the surface."""

@@ -56,10 +56,11 @@ class Composer:
         height, width = fill_index.shape
         self.textures = ti.Vector.field(3, ti.f32, (count, height, width))
         self.textures.from_numpy(np.stack(textures).astype(np.float32))
-        self.codes = ti.field(ti.i32, count)
         self.ranges = ti.Vector.field(3, ti.f32, count)  # from, to, opacity
-        codes = [FIELD_CODES[stage["field"]] if stage["field"] else -1 for stage in stages]
-        self.codes.from_numpy(np.array(codes, np.int32))
+        # the fields each stage reads, fixed when the kernels compile: each texel samples only the fields in use
+        self.codes = tuple(FIELD_CODES[stage["field"]] if stage["field"] else -1 for stage in stages)
+        self.reads = tuple(code in self.codes[1:] for code in range(len(FIELD_CODES)))
+        self.reads_omega = self.reads[FIELD_CODES["coagulation"]] or self.reads[FIELD_CODES["omega"]]
         self.ranges.from_numpy(np.array([[stage["from"], stage["to"], stage["opacity"]] for stage in stages], np.float32))
         self.fill = ti.field(ti.i32, (height, width))
         self.fill.from_numpy(fill_index.astype(np.int32))
@@ -69,36 +70,53 @@ class Composer:
         self.count = count
         self.texel_mm = texel_mm  # typical texel size, for slopes of the blood height map
 
-    def compose(self, cautery=None, bleeding=None) -> np.ndarray:
-        """(H, W, 3) uint8 from the models present (each may be None)."""
-        if cautery is not None:
-            self._tissue(cautery.surface_temperature, cautery.omega, cautery.char, cautery.coagulation_depth)
+    def compose(self, tiles, heat=None, bleeding=None) -> np.ndarray:
+        """(H, W, 3) uint8 from the models present (each may be None; heat: sims.heat_display.HeatDisplay). The
+        tissue is recomposed only on the tiles that tiles (sims.display_tiles.DisplayTiles) flags, the others keep
+        their colour; blood covers every tile."""
+        if tiles.listed:
+            if heat is not None:
+                self._tissue(heat, tiles)
+            elif bleeding is None:
+                self._plain(tiles)
         if bleeding is not None:
             self._with_blood(bleeding.thickness, bleeding.params["film_thickness_mm"], self.texel_mm)
-        else:
-            self._plain()
         return self.rgb.to_numpy()
 
     @ti.kernel
-    def _tissue(self, temperature: ti.template(), omega: ti.template(), char: ti.template(), depth: ti.template()):
-        for r, c in self.color:
-            color = self.textures[0, r, c]
-            for s in range(1, self.count):
-                code = self.codes[s]
-                value = temperature[r, c]
-                if code == 0:
-                    value = 1.0 - ti.exp(-omega[r, c])
-                elif code == 1:
-                    value = char[r, c]
-                elif code == 2:
-                    value = omega[r, c]
-                elif code == 4:
-                    value = depth[r, c]
-                lo, hi = self.ranges[s][0], self.ranges[s][1]
-                x = ti.min(ti.max((value - lo) / (hi - lo), 0.0), 1.0)
-                weight = x * x * (3.0 - 2.0 * x) * self.ranges[s][2]
-                color = color * (1.0 - weight) + self.textures[s, r, c] * weight
-            self.color[r, c] = color
+    def _tissue(self, heat: ti.template(), tiles: ti.template()):
+        """Tissue colour (color, at surface texels) and rgb of the flagged tiles: each texel shows the stages blended
+        at its fill source, from the burn read there."""
+        for r, c in self.rgb:
+            if tiles.flagged(r, c):
+                sr, sc = self._source(r, c)
+                color = self.textures[0, sr, sc]
+                omega, char, temperature, depth = 0.0, 0.0, 0.0, 0.0
+                if ti.static(self.reads_omega):
+                    omega = heat.sample(heat.cautery.omega, sr, sc)
+                if ti.static(self.reads[FIELD_CODES["char"]]):
+                    char = heat.sample(heat.cautery.char, sr, sc)
+                if ti.static(self.reads[FIELD_CODES["temperature_c"]]):
+                    temperature = heat.sample(heat.cautery.surface_temperature, sr, sc)
+                if ti.static(self.reads[FIELD_CODES["coagulation_depth_mm"]]):
+                    depth = heat.sample(heat.cautery.coagulation_depth, sr, sc)
+                for s in ti.static(range(1, self.count)):
+                    value = depth
+                    if ti.static(self.codes[s] == FIELD_CODES["coagulation"]):
+                        value = 1.0 - ti.exp(-omega)
+                    elif ti.static(self.codes[s] == FIELD_CODES["char"]):
+                        value = char
+                    elif ti.static(self.codes[s] == FIELD_CODES["omega"]):
+                        value = omega
+                    elif ti.static(self.codes[s] == FIELD_CODES["temperature_c"]):
+                        value = temperature
+                    lo, hi = self.ranges[s][0], self.ranges[s][1]
+                    x = ti.min(ti.max((value - lo) / (hi - lo), 0.0), 1.0)
+                    weight = x * x * (3.0 - 2.0 * x) * self.ranges[s][2]
+                    color = color * (1.0 - weight) + self.textures[s, sr, sc] * weight
+                if sr == r and sc == c:
+                    self.color[r, c] = color
+                self._write(r, c, color)
 
     @ti.func
     def _write(self, r, c, color):
@@ -111,10 +129,11 @@ class Composer:
         return source // width, source % width
 
     @ti.kernel
-    def _plain(self):
+    def _plain(self, tiles: ti.template()):
         for r, c in self.rgb:
-            sr, sc = self._source(r, c)
-            self._write(r, c, self.color[sr, sc])
+            if tiles.flagged(r, c):
+                sr, sc = self._source(r, c)
+                self._write(r, c, self.color[sr, sc])
 
     @ti.kernel
     def _with_blood(self, thickness: ti.template(), film: ti.f32, texel_mm: ti.f32):

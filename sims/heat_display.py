@@ -8,27 +8,28 @@ import taichi as ti
 
 from sims.resample import GridResampler
 
-SURFACE_FIELDS = ("surface_temperature", "omega", "char", "coagulation_depth")  # what the look reads
-
-
 @ti.data_oriented
 class HeatDisplay:
-    """Display-grid copies of a Cautery's surface fields (refreshed() fills them) and its arrays at display resolution.
-    With the same grid (resampler None) everything is the cautery's own."""
+    """A Cautery's surface fields read at display texels (sample(), in the look's kernels) and its arrays at display
+    resolution. With the same grid (resampler None) a display texel is a heat texel."""
 
     def __init__(self, cautery, resampler: GridResampler | None):
         self.cautery, self.resampler = cautery, resampler
-        if resampler is not None:
-            for name in SURFACE_FIELDS:
-                setattr(self, name, ti.field(ti.f32, resampler.fine_shape))
+        self.same_grid = resampler is None
 
-    def refreshed(self):
-        """An object with SURFACE_FIELDS (Taichi fields, display grid) holding the current burn."""
-        if self.resampler is None:
-            return self.cautery
-        for name in SURFACE_FIELDS:
-            self.resampler.field(getattr(self.cautery, name), getattr(self, name))
-        return self
+    @ti.func
+    def sample(self, field: ti.template(), r, c):
+        """A (heat grid) surface field of the cautery at display texel (r, c)."""
+        value = 0.0
+        if ti.static(self.same_grid):
+            value = field[r, c]
+        else:
+            value = self.resampler.sample(field, r, c)
+        return value
+
+    def heat_taps(self) -> np.ndarray | None:
+        """(H * W, K) flat heat-grid texels each display texel reads; None when heat runs on the display grid."""
+        return None if self.resampler is None else self.resampler.taps_np
 
     def coarse_texel(self, texel_rc) -> tuple[int, int]:
         """The heat-grid texel under a display texel."""

@@ -70,13 +70,12 @@ class GridResampler:
         fine = (flat[..., self.taps_np] * self.weights_np).sum(axis=-1, dtype=np.float32)
         return fine.reshape(values.shape[:-2] + self.fine_shape)
 
-    @ti.kernel
-    def field(self, src: ti.template(), dst: ti.template()):
-        """dst (fine (H, W) field) = src (coarse (h, w) field) at the fine texels."""
+    @ti.func
+    def sample(self, src: ti.template(), r, c):
+        """src (a coarse (h, w) field) at fine texel (r, c)."""
         width = src.shape[1]
-        for r, c in dst:
-            value = 0.0
-            for k in ti.static(range(TAPS)):
-                index = self.taps[r, c][k]
-                value += self.weights[r, c][k] * src[index // width, index % width]
-            dst[r, c] = value
+        value = 0.0
+        for k in ti.static(range(TAPS)):
+            index = self.taps[r, c][k]
+            value += self.weights[r, c][k] * src[index // width, index % width]
+        return value

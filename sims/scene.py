@@ -151,6 +151,7 @@ class Scene:
         self.profile = False      # True: sync the device around each model and add its wall seconds to model_seconds
         self.model_seconds: dict[str, float] = {}
         from sims.compose import Composer
+        from sims.display_tiles import DISPLAY_TILE, DisplayTiles
         from sims.instruments import Instrument
 
         self.instruments = [Instrument.from_config(item) for item in config["instruments"]]
@@ -185,6 +186,11 @@ class Scene:
             self._texel_tree = cKDTree(self.surface.position_mm[rows, cols])
         texel_mm = float(np.sqrt(np.median(self.surface.texel_area_mm2[self.surface.mask])))
         self.composer = Composer(config["look"]["stages"], textures, self.surface.fill_index, texel_mm)
+        if self.cautery is None:
+            self.display_tiles = DisplayTiles(self.surface.fill_index, None, self.surface.mask.shape, DISPLAY_TILE)
+        else:
+            self.display_tiles = DisplayTiles(self.surface.fill_index, self.heat_display.heat_taps(),
+                                              self.heat_surface.mask.shape, self.cautery.tiles.tile)
 
     @classmethod
     def from_file(cls, path, overrides=(), arch: str = "auto") -> "Scene":
@@ -560,7 +566,12 @@ class Scene:
                 elapsed = self.time_s - self._displayed_at
                 self.bleeding.update_display(float(np.exp(-elapsed / fade_s)) if fade_s > 0 and elapsed >= 0 else 0.0)
                 self._displayed_at = self.time_s
-            return self.composer.compose(None if self.cautery is None else self.heat_display.refreshed(), self.bleeding)
+            tiles = self.display_tiles
+            if self.cautery is None:
+                tiles.select(None)
+                return self.composer.compose(tiles, None, self.bleeding)
+            tiles.select(self.cautery.take_changed_tiles())
+            return self.composer.compose(tiles, self.heat_display, self.bleeding)
 
     def state_arrays(self) -> dict:
         """Arrays of DESIGN section 4 for the models this scene runs."""

@@ -9,6 +9,8 @@ by a UV seam link, each with a depth of the deepest hot layer around it plus `ma
 always finds a solved layer to go into), and lists them in tile order (the same list, so the same sums, whatever
 the thread count). A tile that goes to sleep keeps its values, which are at rest within the model's tolerance; the
 tiles that fell asleep at this plan are listed in `asleep` (a model with two buffers copies them across once).
+The tiles stepped since a reader last asked are flagged in `changed` (take_changed()): the look recomposes only
+those (sims.display_tiles).
 """
 
 import numpy as np
@@ -35,17 +37,18 @@ def tile_spheres(position_mm: np.ndarray, mask: np.ndarray, tile: int = TILE) ->
     return centre, radius
 
 
+def tile_index(flat: np.ndarray, width: int, tile: int) -> np.ndarray:
+    """Row-major tile of flat texel indices (row * width + column) of a texture `width` texels wide."""
+    return (flat // width) // tile * (-(-width // tile)) + (flat % width) // tile
+
+
 def tile_links(link_start: np.ndarray, link_to: np.ndarray, shape: tuple[int, int], tile: int = TILE):
     """Tiles joined by texel links (seams), CSR over tiles: (start (T + 1,) int32, partner (P,) int32), both ways."""
     height, width = shape
-    cols = -(-width // tile)
-    count = (-(-height // tile)) * cols
+    count = (-(-height // tile)) * (-(-width // tile))
     sources = np.repeat(np.arange(len(link_start) - 1), np.diff(link_start))
-
-    def tile_of(flat):
-        return (flat // width) // tile * cols + (flat % width) // tile
-
-    pairs = np.unique(np.stack([tile_of(sources), tile_of(np.asarray(link_to[: len(sources)]))], axis=1), axis=0)
+    targets = np.asarray(link_to[: len(sources)])
+    pairs = np.unique(np.stack([tile_index(sources, width, tile), tile_index(targets, width, tile)], axis=1), axis=0)
     pairs = pairs[pairs[:, 0] != pairs[:, 1]]
     start = np.zeros(count + 1, np.int64)
     np.add.at(start, pairs[:, 0] + 1, 1)
@@ -74,6 +77,7 @@ class TileSchedule:
         self.active = ti.field(ti.i32, count)  # awake tiles, in tile order
         self.asleep = ti.field(ti.i32, count)  # tiles that were awake in the last step and are not now
         self.count = ti.field(ti.i32, (2,))    # awake, fell asleep
+        self.changed = ti.field(ti.i32, count)  # 1: stepped (or reset) since take_changed()
         start, partner = tile_links(link_start, link_to, mask.shape, tile)
         self.partner_start = ti.field(ti.i32, count + 1)
         self.partner = ti.field(ti.i32, max(len(partner), 1))
@@ -129,12 +133,23 @@ class TileSchedule:
             if self.planned[t] > 0:
                 self.active[self.count[0]] = t
                 self.count[0] += 1
+                self.changed[t] = 1
             elif self.depth[t] > 0:
                 self.asleep[self.count[1]] = t
                 self.count[1] += 1
             self.depth[t] = self.planned[t]
             self.hot[t] = -1
             self.wanted[t] = 0
+
+    def mark_all_changed(self) -> None:
+        """Every tile's values were set from outside (a reset, a new state)."""
+        self.changed.fill(1)
+
+    def take_changed(self) -> np.ndarray:
+        """(T,) bool: the tiles stepped or reset since the last call (what a reader of the fields must refresh)."""
+        changed = self.changed.to_numpy().astype(bool)
+        self.changed.fill(0)
+        return changed
 
     def awake_fraction(self) -> float:
         """Share of the tiles with surface texels that are awake this step."""

@@ -1,0 +1,46 @@
+"""The look recomposes only the display tiles a change of the burn reaches (sims.display_tiles), and what it shows is
+byte for byte what a full pass shows: while a tool burns, after a reset, on either heat grid."""
+import numpy as np
+import pytest
+
+from sims.config import REPO_ROOT
+
+
+def full_pass(scene) -> np.ndarray:
+    scene.display_tiles.select_all()
+    heat = None if scene.cautery is None else scene.heat_display
+    return scene.composer.compose(scene.display_tiles, heat, scene.bleeding)
+
+
+@pytest.mark.parametrize("divisor", [1, 2])
+def test_recomposing_the_changed_tiles_shows_what_a_full_pass_shows(divisor):
+    from sims.scene import Scene
+
+    scene = Scene.from_file(REPO_ROOT / "scenes" / "default.yaml", ["texture_size=128", f"cautery.heat_grid_divisor={divisor}"])
+    start = scene.composite()
+    recomposed = []
+    for _ in range(12):
+        for _ in range(25):
+            scene.step()
+        shown = scene.composite()
+        recomposed.append(scene.display_tiles.listed)
+        assert np.array_equal(shown, full_pass(scene)), f"t = {scene.time_s:.2f} s"
+    tiles = scene.display_tiles.tiles
+    assert 0 < max(recomposed) and min(recomposed) < tiles  # partial passes happened, and the burn was recomposed
+    assert not np.array_equal(shown, start)  # the burn shows
+    scene.reset()
+    assert np.array_equal(scene.composite(), start), "after a reset the look is the look at t = 0"
+    assert scene.display_tiles.listed == tiles
+
+
+def test_an_idle_scene_recomposes_nothing():
+    from sims.scene import Scene
+
+    scene = Scene.from_file(REPO_ROOT / "scenes" / "default.yaml", ["texture_size=64", "instruments=[]"])
+    for _ in range(20):  # the first step steps every tile once
+        scene.step()
+    first = scene.composite()
+    for _ in range(20):
+        scene.step()
+    assert np.array_equal(scene.composite(), first) and scene.display_tiles.listed == 0
+    assert scene.cautery.tiles.awake == 0

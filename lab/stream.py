@@ -39,7 +39,9 @@ another thread safe too.
 """
 from __future__ import annotations
 
+import concurrent.futures
 import io
+import os
 import json
 import struct
 import threading
@@ -329,6 +331,7 @@ class TextureStream:
         self._closed = False
         self._queued = 0        # tile messages queued to any browser so far: the ClientSync positions
         self._publications = 0  # tile versions published so far
+        self._encoders = concurrent.futures.ThreadPoolExecutor(max(1, min(4, os.cpu_count() or 1)), thread_name_prefix="tile-encode")
         self.sync = ClientSync(server, position=lambda: self._queued) if wait_for_clients else None
         self._tiles = self._cut(surface, seamless_normals)
         self.max_pool = tiles * tiles if max_pool is None else max(int(max_pool), 0)
@@ -424,6 +427,7 @@ class TextureStream:
             if self._closed:
                 return
             self._closed = True
+            self._encoders.shutdown(wait=True)
             if self.sync is not None:
                 self.sync.close()
             for viewer in self._viewers.values():
@@ -443,21 +447,21 @@ class TextureStream:
         """Encode the changed tiles, most urgent first, within the token bucket (a tile's first version is free)."""
         self._refill(now)
         changed, deferred = self._changed_by_priority(rgb, now)
-        sent = size = 0
+        chosen = []
         for tile in changed:
             first = tile.sent is None
             if not first and self._tokens < 1.0:
                 deferred += 1
                 continue
-            crop = np.array(tile.geometry.crop(rgb))  # a copy: the caller may reuse its buffer
-            tile.glb = tile.geometry.glb(*self._encode(crop))
-            tile.sent, tile.sent_at, tile.version = crop, now, self._publications
-            self._publications += 1
             if not first:
                 self._tokens -= 1.0
-            sent += 1
-            size += len(tile.glb)
-        return {"tiles_sent": sent, "bytes": size, "tiles_deferred": deferred}
+            chosen.append((tile, np.array(tile.geometry.crop(rgb))))  # a copy: the caller may reuse its buffer
+        # Pillow's encoder releases the GIL: the crops are encoded on every core at once, published in order
+        for (tile, crop), encoded in zip(chosen, self._encoders.map(self._encode, [crop for _, crop in chosen])):
+            tile.glb = tile.geometry.glb(*encoded)
+            tile.sent, tile.sent_at, tile.version = crop, now, self._publications
+            self._publications += 1
+        return {"tiles_sent": len(chosen), "bytes": sum(len(tile.glb) for tile, _ in chosen), "tiles_deferred": deferred}
 
     def _deliver(self, now: float) -> None:
         """Follow the browsers that came and left, then per browser: remove its confirmed replaced nodes and send it

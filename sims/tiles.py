@@ -103,13 +103,12 @@ class TileSchedule:
     def plan(self, reach_tiles: int, margin: int, wake_all: bool) -> int:
         """Decide this step's awake tiles (see the module docstring); wake_all: every tile with surface texels, at
         full depth. Returns how many are awake."""
-        self._plan(int(reach_tiles), int(margin), int(wake_all))
-        counts = self.count.to_numpy()
+        counts = self._plan(int(reach_tiles), int(margin), int(wake_all))  # a returned value: no separate read back
         self.awake, self.fell_asleep = int(counts[0]), int(counts[1])
         return self.awake
 
     @ti.kernel
-    def _plan(self, reach: ti.i32, margin: ti.i32, wake_all: ti.i32):
+    def _plan(self, reach: ti.i32, margin: ti.i32, wake_all: ti.i32) -> ti.types.vector(2, ti.i32):
         for t in range(self.tiles):
             tr, tc = t // self.cols, t % self.cols
             deepest = -1
@@ -140,6 +139,7 @@ class TileSchedule:
             self.depth[t] = self.planned[t]
             self.hot[t] = -1
             self.wanted[t] = 0
+        return ti.Vector([self.count[0], self.count[1]])
 
     def mark_all_changed(self) -> None:
         """Every tile's values were set from outside (a reset, a new state)."""

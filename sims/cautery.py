@@ -607,14 +607,15 @@ class Cautery:
                 ti.atomic_max(self.tiles.hot[tile], layer)
                 break
         depth, z_prev = 0.0, 0.0
-        f_prev = self._log_omega(self.omega[r, c])
-        if f_prev >= 0.0:
-            for layer in range(self.layer_count):
-                z, value = self.centre_mm[layer], self._log_omega(self.omega_depth[f, layer])
-                if value < 0.0:
+        omega_prev = self.omega[r, c]
+        if omega_prev >= 1.0:
+            for layer in range(self.layer_count):  # logarithms only at the crossing: most burnt texels have several layers coagulated
+                z, omega = self.centre_mm[layer], self.omega_depth[f, layer]
+                if omega < 1.0:
+                    f_prev, value = self._log_omega(omega_prev), self._log_omega(omega)
                     depth = z_prev + (z - z_prev) * f_prev / (f_prev - value)
                     break
-                depth, z_prev, f_prev = z, z, value
+                depth, z_prev, omega_prev = z, z, omega
         self.coagulation_depth[r, c] = depth
 
     # --- implicit lateral step: (A + k L) d = -k L T per layer, k = dt alpha, by Jacobi-preconditioned CG ------

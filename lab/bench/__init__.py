@@ -8,7 +8,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from lab.bench.common import device_description
+from lab.bench.common import cpu_ticks, device_description, stolen_share
 from sims import backend
 
 SECTIONS = ("heat", "heat_reference", "heat_layers", "damage", "bleeding", "dambreak", "scenes")  # dambreak includes the SPlisHSPlasH peer where it installs
@@ -28,9 +28,10 @@ def run(out_dir, quick: bool = False, arch: str = "auto", sections=SECTIONS) -> 
     for name in bar:
         bar.set_postfix_str(name)
         module = importlib.import_module(f"lab.bench.{name}")
-        section_start = time.perf_counter()
+        section_start, ticks = time.perf_counter(), cpu_ticks()
         results[name] = module.run(quick)
         results[name]["wall_s"] = time.perf_counter() - section_start
+        results[name]["cpu_stolen_share"] = stolen_share(ticks, cpu_ticks())
         results[name]["plots"] = module.plot(results[name], out)
     results["wall_s"] = time.perf_counter() - started
     (out / "results.json").write_text(json.dumps(results, indent=2) + "\n")
@@ -51,6 +52,9 @@ def render(results: dict) -> str:
     for name in results["sections"]:
         module = importlib.import_module(f"lab.bench.{name}")
         lines += module.render(results[name])
+        stolen = results[name].get("cpu_stolen_share")
+        if stolen is not None:  # a virtual machine's CPUs lent to other guests: wall times grow by about as much
+            lines += ["", f"Machine load during this section: {100 * stolen:.0f} % of the CPU time went to other guests of the host (steal)."]
         lines += [f"![{plot}]({plot})" for plot in results[name].get("plots", [])]
         lines.append("")
     return "\n".join(lines) + "\n"

@@ -50,6 +50,22 @@ def device_description(arch: str) -> dict:
     }
 
 
+def cpu_ticks() -> tuple[int, int] | None:
+    """(all, stolen) CPU ticks of the machine so far from /proc/stat (Linux), None elsewhere."""
+    try:
+        fields = [int(value) for value in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]]
+    except (OSError, ValueError):
+        return None
+    return sum(fields[:8]), fields[7] if len(fields) > 7 else 0
+
+
+def stolen_share(before, after) -> float | None:
+    """Share of the machine's CPU time the hypervisor took for other guests between two cpu_ticks() (steal)."""
+    if before is None or after is None or after[0] <= before[0]:
+        return None
+    return (after[1] - before[1]) / (after[0] - before[0])
+
+
 def synced_seconds(fn, repeats: int = 1, chunks: int = 5) -> float:
     """Wall seconds for `repeats` calls of fn: the calls are timed in up to `chunks` equal runs (Taichi device
     synchronised at both ends of each) and the fastest run's time per call is scaled to `repeats`, so a burst of

@@ -1,4 +1,6 @@
 """Shared test helpers: synthetic meshes and parameter sets."""
+import signal
+
 import numpy as np
 import trimesh
 
@@ -41,3 +43,9 @@ def surface_only_values(**changes) -> dict:
     from sims.cautery import SURFACE_ONLY
 
     return cautery_values(**{**SURFACE_ONLY, **changes})
+
+
+def interruptible() -> None:
+    """Popen preexec_fn: SIGINT back to its default in the child, so the child's Python turns it into
+    KeyboardInterrupt even when this test run was started with SIGINT ignored (a background job of a script)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)

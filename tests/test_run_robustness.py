@@ -14,7 +14,7 @@ import trimesh
 
 from sims.cautery import MAX_SUBSTEPS
 from sims.config import REPO_ROOT
-from tests.helpers import plane_mesh
+from tests.helpers import interruptible, plane_mesh
 from lab.__main__ import main
 from tests.test_cli import bad, run_cli, write_scene
 
@@ -205,7 +205,7 @@ def test_new_output_folder_with_foreign_files_is_refused(tmp_path, capsys):
 def test_sigint_to_a_real_run_exits_130_and_keeps_the_previous_outputs(tmp_path, previous_run):
     path, out, before = copy_of(previous_run, tmp_path)
     process = subprocess.Popen([sys.executable, "-m", "lab", "run", str(path), "--out", str(out), "--frames-every", "0.05", "--quiet"],
-                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO_ROOT)
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO_ROOT, preexec_fn=interruptible)
     try:
         deadline = time.monotonic() + 120
         while not list(tmp_path.glob(".out.*/frames/frame_00001.png")):  # stepping has started

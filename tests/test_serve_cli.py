@@ -8,6 +8,7 @@ import time
 
 from sims.config import REPO_ROOT
 from tests import browser
+from tests.helpers import interruptible
 
 
 def test_serve_warns_about_open_hosts_and_prints_the_port_it_really_bound(tmp_path):
@@ -20,7 +21,7 @@ def test_serve_warns_about_open_hosts_and_prints_the_port_it_really_bound(tmp_pa
                "--port", str(port), "--arch", "cpu", "--set", "texture_size=32"]
     out, err = tmp_path / "out.txt", tmp_path / "err.txt"
     with open(out, "w") as stdout, open(err, "w") as stderr:
-        process = subprocess.Popen(command, cwd=REPO_ROOT, stdout=stdout, stderr=stderr)
+        process = subprocess.Popen(command, cwd=REPO_ROOT, stdout=stdout, stderr=stderr, preexec_fn=interruptible)
         try:
             deadline = time.monotonic() + 240
             while "tissue lab: http://" not in out.read_text():

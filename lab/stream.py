@@ -41,8 +41,8 @@ from __future__ import annotations
 
 import concurrent.futures
 import io
-import os
 import json
+import os
 import struct
 import threading
 import time

@@ -49,7 +49,7 @@ def load_texture(path, size: int, tile: int = 1) -> np.ndarray:
 
 @ti.data_oriented
 class Composer:
-    """Stage textures in one field; tissue() blends them from the cautery fields, rgb() adds blood."""
+    """Stage textures in one field; compose() blends them from the cautery's fields and adds blood."""
 
     def __init__(self, stages: list, textures: list, fill_index: np.ndarray, texel_mm: float):
         count = len(stages)
@@ -76,7 +76,7 @@ class Composer:
         their colour; blood covers every tile."""
         if tiles.listed:
             if heat is not None:
-                self._tissue(heat, tiles)
+                self._tissue(heat, tiles, bleeding is None)
             elif bleeding is None:
                 self._plain(tiles)
         if bleeding is not None:
@@ -84,9 +84,9 @@ class Composer:
         return self.rgb.to_numpy()
 
     @ti.kernel
-    def _tissue(self, heat: ti.template(), tiles: ti.template()):
-        """Tissue colour (color, at surface texels) and rgb of the flagged tiles: each texel shows the stages blended
-        at its fill source, from the burn read there."""
+    def _tissue(self, heat: ti.template(), tiles: ti.template(), shown: ti.template()):
+        """Tissue colour (color, at surface texels) of the flagged tiles, and their rgb when shown (no blood pass
+        follows): each texel shows the stages blended at its fill source, from the burn read there."""
         for r, c in self.rgb:
             if tiles.flagged(r, c):
                 sr, sc = self._source(r, c)
@@ -116,7 +116,8 @@ class Composer:
                     color = color * (1.0 - weight) + self.textures[s, sr, sc] * weight
                 if sr == r and sc == c:
                     self.color[r, c] = color
-                self._write(r, c, color)
+                if ti.static(shown):
+                    self._write(r, c, color)
 
     @ti.func
     def _write(self, r, c, color):

@@ -12,7 +12,7 @@ import numpy as np
 import scipy.sparse
 import taichi as ti
 
-from sims.tiles import tile_index
+from sims.tiles import tile_grid, tile_index
 
 DISPLAY_TILE = 16  # display texels per tile side
 
@@ -27,14 +27,14 @@ class DisplayTiles:
         """fill_index: (H, W) flat display index of each texel's fill source; heat_taps: (H * W, K) flat heat-grid
         indices each display texel reads (None: the heat grid is the display grid); heat_tile: the heat tiles' side."""
         height, width = fill_index.shape
-        self.tile, self.cols = tile, -(-width // tile)
-        self.tiles = (-(-height // tile)) * self.cols
+        rows, self.cols = tile_grid(fill_index.shape, tile)
+        self.tile, self.tiles = tile, rows * self.cols
         texels = np.arange(height * width)
         taps = texels[:, None] if heat_taps is None else np.asarray(heat_taps, np.int64)
         heat = tile_index(taps, heat_shape[1], heat_tile)  # (H * W, K) heat tiles each texel's colour reads
         own = np.repeat(tile_index(texels, width, tile), heat.shape[1])
         shown = np.concatenate([heat.ravel(), heat[fill_index.ravel()].ravel()])  # its own colour, then its fill's
-        heat_tiles = (-(-heat_shape[0] // heat_tile)) * (-(-heat_shape[1] // heat_tile))
+        heat_tiles = int(np.prod(tile_grid(heat_shape, heat_tile)))
         self.reads = scipy.sparse.csr_matrix((np.ones(len(shown), np.int32), (shown, np.concatenate([own, own]))),
                                              shape=(heat_tiles, self.tiles))  # heat tile -> display tiles it reaches
         self.dirty = ti.field(ti.i32, self.tiles)  # 1: recompose this tile

@@ -566,12 +566,11 @@ class Scene:
                 elapsed = self.time_s - self._displayed_at
                 self.bleeding.update_display(float(np.exp(-elapsed / fade_s)) if fade_s > 0 and elapsed >= 0 else 0.0)
                 self._displayed_at = self.time_s
-            tiles = self.display_tiles
             if self.cautery is None:
-                tiles.select(None)
-                return self.composer.compose(tiles, None, self.bleeding)
-            tiles.select(self.cautery.take_changed_tiles())
-            return self.composer.compose(tiles, self.heat_display, self.bleeding)
+                self.display_tiles.select(None)
+                return self.composer.compose(self.display_tiles, None, self.bleeding)
+            self.display_tiles.select(self.cautery.take_changed_tiles())
+            return self.composer.compose(self.display_tiles, self.heat_display, self.bleeding)
 
     def state_arrays(self) -> dict:
         """Arrays of DESIGN section 4 for the models this scene runs."""

@@ -20,11 +20,16 @@ TILE = 8  # texels per tile side
 WAKE_HALO_TEXELS = 16  # awake texels at least this far around a hot tile: the tails of a spreading bump keep moving
 
 
+def tile_grid(shape: tuple[int, int], tile: int) -> tuple[int, int]:
+    """(rows, columns) of tile x tile tiles covering a (H, W) texture."""
+    return -(-shape[0] // tile), -(-shape[1] // tile)
+
+
 def tile_spheres(position_mm: np.ndarray, mask: np.ndarray, tile: int = TILE) -> tuple[np.ndarray, np.ndarray]:
     """Per tile (row-major over the tile grid) the centre (mm, (T, 3)) and radius (mm, (T,)) of a ball holding its
     surface texels; radius -1 for a tile without any."""
     height, width = mask.shape
-    rows, cols = -(-height // tile), -(-width // tile)
+    rows, cols = tile_grid((height, width), tile)
     centre, radius = np.zeros((rows * cols, 3), np.float32), np.full(rows * cols, -1.0, np.float32)
     for index in range(rows * cols):
         tr, tc = divmod(index, cols)
@@ -39,13 +44,13 @@ def tile_spheres(position_mm: np.ndarray, mask: np.ndarray, tile: int = TILE) ->
 
 def tile_index(flat: np.ndarray, width: int, tile: int) -> np.ndarray:
     """Row-major tile of flat texel indices (row * width + column) of a texture `width` texels wide."""
-    return (flat // width) // tile * (-(-width // tile)) + (flat % width) // tile
+    return (flat // width) // tile * tile_grid((1, width), tile)[1] + (flat % width) // tile
 
 
 def tile_links(link_start: np.ndarray, link_to: np.ndarray, shape: tuple[int, int], tile: int = TILE):
     """Tiles joined by texel links (seams), CSR over tiles: (start (T + 1,) int32, partner (P,) int32), both ways."""
-    height, width = shape
-    count = (-(-height // tile)) * (-(-width // tile))
+    width = shape[1]
+    count = int(np.prod(tile_grid(shape, tile)))
     sources = np.repeat(np.arange(len(link_start) - 1), np.diff(link_start))
     targets = np.asarray(link_to[: len(sources)])
     pairs = np.unique(np.stack([tile_index(sources, width, tile), tile_index(targets, width, tile)], axis=1), axis=0)
@@ -62,7 +67,7 @@ class TileSchedule:
     def __init__(self, mask: np.ndarray, link_start: np.ndarray, link_to: np.ndarray, max_depth: int, tile: int = TILE):
         self.tile, self.max_depth = tile, int(max_depth)
         self.height, self.width = mask.shape
-        self.rows, self.cols = -(-self.height // tile), -(-self.width // tile)
+        self.rows, self.cols = tile_grid(mask.shape, tile)
         count = self.rows * self.cols
         self.tiles = count
         occupied = np.array([mask[tr * tile:(tr + 1) * tile, tc * tile:(tc + 1) * tile].any()

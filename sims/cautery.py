@@ -336,9 +336,11 @@ class Cautery:
         self._wake_all = True
         self.tiles.mark_all_changed()
 
-    def take_changed_tiles(self) -> np.ndarray:
-        """(T,) bool over self.tiles: the tiles whose fields changed since the last call (one reader: the look)."""
-        return self.tiles.take_changed()
+    def take_changed_tiles(self, temperature: bool) -> np.ndarray:
+        """(T,) bool over self.tiles: the tiles whose fields changed since the last call (one reader: the look); with
+        temperature False only those whose damage, char or coagulation depth changed (a look that shows no temperature
+        needs no other)."""
+        return self.tiles.take_changed(temperature)
 
     def temperature_c(self) -> np.ndarray:
         """(H, W) C at the surface."""
@@ -560,7 +562,7 @@ class Cautery:
                     layer = ti.static(self.layer_count - 1 - step)
                     if layer < n - 1:
                         rhs[layer] += self.carry[n, layer] * rhs[layer + 1]
-                above = 0.0
+                above, damaged = 0.0, 0
                 for layer in ti.static(range(self.layer_count)):  # downward: delta_l = (R_l + up_l delta_{l-1}) / pivot[n, l]
                     if layer < n:
                         pivot = self.pivot[n, layer]
@@ -572,8 +574,10 @@ class Cautery:
                         mid = 0.5 * (self.temperature[src, f, layer] + t1)
                         if mid > t_damage:
                             self.omega_depth[f, layer] = ti.min(self.omega_depth[f, layer] + self._damage_rate(mid, t_damage) * dt, OMEGA_MAX)
+                            damaged = 1
                         if mid > t_char:
                             self.char_depth[f, layer] = ti.min(self.char_depth[f, layer] + char_rate * (mid - t_char) * dt, 1.0)
+                            damaged = 1
                         above = change
                 for layer in range(n, count):
                     self.temperature[dst, f, layer] = self.temperature[src, f, layer]
@@ -583,8 +587,12 @@ class Cautery:
                 mid = 0.5 * (s0 + s1)
                 if mid > t_damage:
                     self.omega[r, c] = ti.min(self.omega[r, c] + self._damage_rate(mid, t_damage) * dt, OMEGA_MAX)
+                    damaged = 1
                 if mid > t_char:
                     self.char[r, c] = ti.min(self.char[r, c] + char_rate * (mid - t_char) * dt, 1.0)
+                    damaged = 1
+                if damaged:
+                    self.tiles.damaged[tile] = 1  # the same value from every writer
                 if scan:
                     self._scan_column(dst, tile, r, c, f, n, tolerance, t_damage)
 

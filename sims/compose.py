@@ -61,6 +61,7 @@ class Composer:
         self.codes = tuple(FIELD_CODES[stage["field"]] if stage["field"] else -1 for stage in stages)
         self.reads = tuple(code in self.codes[1:] for code in range(len(FIELD_CODES)))
         self.reads_omega = self.reads[FIELD_CODES["coagulation"]] or self.reads[FIELD_CODES["omega"]]
+        self.shows_temperature = self.reads[FIELD_CODES["temperature_c"]]  # else only damage and char change the look
         self.ranges.from_numpy(np.array([[stage["from"], stage["to"], stage["opacity"]] for stage in stages], np.float32))
         self.fill = ti.field(ti.i32, (height, width))
         self.fill.from_numpy(fill_index.astype(np.int32))

@@ -569,7 +569,7 @@ class Scene:
             if self.cautery is None:
                 self.display_tiles.select(None)
                 return self.composer.compose(self.display_tiles, None, self.bleeding)
-            self.display_tiles.select(self.cautery.take_changed_tiles())
+            self.display_tiles.select(self.cautery.take_changed_tiles(self.composer.shows_temperature))
             return self.composer.compose(self.display_tiles, self.heat_display, self.bleeding)
 
     def state_arrays(self) -> dict:

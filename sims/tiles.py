@@ -9,8 +9,9 @@ by a UV seam link, each with a depth of the deepest hot layer around it plus `ma
 always finds a solved layer to go into), and lists them in tile order (the same list, so the same sums, whatever
 the thread count). A tile that goes to sleep keeps its values, which are at rest within the model's tolerance; the
 tiles that fell asleep at this plan are listed in `asleep` (a model with two buffers copies them across once).
-The tiles stepped since a reader last asked are flagged in `changed` (take_changed()): the look recomposes only
-those (sims.display_tiles).
+The tiles stepped since a reader last asked are flagged in `changed`; a model flags in `damaged` the tiles where it
+also changed a lasting field (the burn's damage and char). take_changed() hands either set to its one reader, the
+look, which recomposes only those tiles (sims.display_tiles): only the damaged ones when it shows no temperature.
 """
 
 import numpy as np
@@ -83,6 +84,7 @@ class TileSchedule:
         self.asleep = ti.field(ti.i32, count)  # tiles that were awake in the last step and are not now
         self.count = ti.field(ti.i32, (2,))    # awake, fell asleep
         self.changed = ti.field(ti.i32, count)  # 1: stepped (or reset) since take_changed()
+        self.damaged = ti.field(ti.i32, count)  # 1: a lasting field changed (set by the model) since take_changed()
         start, partner = tile_links(link_start, link_to, mask.shape, tile)
         self.partner_start = ti.field(ti.i32, count + 1)
         self.partner = ti.field(ti.i32, max(len(partner), 1))
@@ -149,11 +151,14 @@ class TileSchedule:
     def mark_all_changed(self) -> None:
         """Every tile's values were set from outside (a reset, a new state)."""
         self.changed.fill(1)
+        self.damaged.fill(1)
 
-    def take_changed(self) -> np.ndarray:
-        """(T,) bool: the tiles stepped or reset since the last call (what a reader of the fields must refresh)."""
-        changed = self.changed.to_numpy().astype(bool)
+    def take_changed(self, stepped: bool) -> np.ndarray:
+        """(T,) bool: the tiles stepped (stepped=True) or only those damaged, since the last call or a reset (what a
+        reader of the fields must refresh); both sets start again empty."""
+        changed = (self.changed if stepped else self.damaged).to_numpy().astype(bool)
         self.changed.fill(0)
+        self.damaged.fill(0)
         return changed
 
     def awake_fraction(self) -> float:

@@ -1,5 +1,6 @@
 """The look recomposes only the display tiles a change of the burn reaches (sims.display_tiles), and what it shows is
-byte for byte what a full pass shows: while a tool burns, after a reset, on either heat grid."""
+byte for byte what a full pass shows: while a tool burns, after a reset, on either heat grid, and with a stage that
+shows the temperature (then every stepped tile changes the look, not only the damaged ones)."""
 import numpy as np
 import pytest
 
@@ -12,11 +13,16 @@ def full_pass(scene) -> np.ndarray:
     return scene.composer.compose(scene.display_tiles, heat, scene.bleeding)
 
 
-@pytest.mark.parametrize("divisor", [1, 2])
-def test_recomposing_the_changed_tiles_shows_what_a_full_pass_shows(divisor):
+HOT_GLOW = ("look.stages=[{name: healthy, texture: textures/liver_healthy.png}, {name: glow, texture: "
+            "textures/liver_charred.png, field: temperature_c, from: 37.5, to: 60}]")
+
+
+@pytest.mark.parametrize("divisor, look", [(1, None), (2, None), (1, HOT_GLOW)], ids=["heat-grid", "half-heat-grid", "temperature-stage"])
+def test_recomposing_the_changed_tiles_shows_what_a_full_pass_shows(divisor, look):
     from sims.scene import Scene
 
-    scene = Scene.from_file(REPO_ROOT / "scenes" / "default.yaml", ["texture_size=128", f"cautery.heat_grid_divisor={divisor}"])
+    overrides = ["texture_size=128", f"cautery.heat_grid_divisor={divisor}"] + ([look] if look else [])
+    scene = Scene.from_file(REPO_ROOT / "scenes" / "default.yaml", overrides)
     start = scene.composite()
     recomposed = []
     for _ in range(12):

@@ -358,6 +358,32 @@ class Cautery:
         """(L, H, W) Omega per layer."""
         return self._layers(self.omega_depth.to_numpy())
 
+    def columns_at(self, rows: np.ndarray, cols: np.ndarray) -> dict[str, np.ndarray]:
+        """The burn at N texels (rows, cols: (N,) ints), read in one kernel rather than whole grids: temperature_c and
+        omega (L, N) per layer; surface_temperature_c, surface_omega and coagulation_depth_mm (N,)."""
+        layers = self.layer_count
+        texels = np.ascontiguousarray(np.stack([rows, cols], axis=1), np.int32)
+        out = np.zeros((len(texels), 2 * layers + 3), np.float32)
+        if len(texels):
+            self._gather(texels, out, self.current)
+        return {"temperature_c": out[:, :layers].T.copy(), "omega": out[:, layers:2 * layers].T.copy(),
+                "surface_temperature_c": out[:, 2 * layers], "surface_omega": out[:, 2 * layers + 1],
+                "coagulation_depth_mm": out[:, 2 * layers + 2]}
+
+    @ti.kernel
+    def _gather(self, texels: ti.types.ndarray(), out: ti.types.ndarray(), buffer: ti.i32):
+        """out[i] = layer temperatures, layer Omegas, surface temperature, surface Omega, coagulation depth at texel i."""
+        layers = self.layer_count
+        for i in range(texels.shape[0]):
+            r, c = texels[i, 0], texels[i, 1]
+            f = r * self.mask.shape[1] + c
+            for layer in range(layers):
+                out[i, layer] = self.temperature[buffer, f, layer]
+                out[i, layers + layer] = self.omega_depth[f, layer]
+            out[i, 2 * layers] = self.surface_temperature[r, c]
+            out[i, 2 * layers + 1] = self.omega[r, c]
+            out[i, 2 * layers + 2] = self.coagulation_depth[r, c]
+
     def _layers(self, values: np.ndarray) -> np.ndarray:
         """(L, H, W) float32 of a layered field's values (H * W, L)."""
         height, width = self.surface.mask.shape

@@ -54,9 +54,5 @@ class SectionSampler:
         along /= max(np.linalg.norm(along), 1e-12)
         distance = np.linspace(-half_length_mm, half_length_mm, samples)
         rows, cols = self.nearest(origin + distance[:, None] * along).T
-        temperature, omega = cautery.temperature_depth_c(), cautery.damage_omega_depth()
-        return BurnSection(
-            centre_mm=origin, direction=along, distance_mm=distance, layer_depth_mm=cautery.layer_depth_mm.copy(),
-            depth_mm=float(cautery.faces_mm[-1]), surface_temperature_c=cautery.temperature_c()[rows, cols],
-            temperature_c=temperature[:, rows, cols], surface_omega=cautery.damage_omega()[rows, cols],
-            omega=omega[:, rows, cols], coagulation_depth_mm=cautery.coagulation_depth_mm()[rows, cols])
+        return BurnSection(centre_mm=origin, direction=along, distance_mm=distance, layer_depth_mm=cautery.layer_depth_mm.copy(),
+                           depth_mm=float(cautery.faces_mm[-1]), **cautery.columns_at(rows, cols))

@@ -106,3 +106,13 @@ def save(fig, out_dir, name: str) -> str:
     fig.savefig(Path(out_dir) / name)
     plt.close(fig)
     return name
+
+
+def pareto(rows: list[dict], cost, error) -> list[dict]:
+    """The rows no other row beats in both cost(row) and error(row), cheapest first."""
+    best, front = float("inf"), []
+    for row in sorted(rows, key=lambda r: (cost(r), error(r))):
+        if error(row) < best:
+            best = error(row)
+            front.append(row)
+    return front

@@ -2,6 +2,7 @@
 charts (seams) against cost, per texture size, time step and time-stepping scheme; a Pareto plot."""
 import numpy as np
 
+from lab.bench import common
 from lab.bench.common import save, BODY_C, plane_mesh, pyplot, synced_seconds
 from sims import analytic
 
@@ -112,13 +113,8 @@ def run(quick: bool) -> dict:
 
 
 def pareto(rows: list[dict]) -> list[dict]:
-    """The rows no other row beats in both cost and error, cheapest first."""
-    best, front = float("inf"), []
-    for row in sorted(rows, key=lambda r: (r["ms_per_simulated_s"], r["max_error_rel"])):
-        if row["max_error_rel"] < best:
-            best = row["max_error_rel"]
-            front.append(row)
-    return front
+    """The runs no other run beats in both cost (ms per simulated s) and error (largest, relative), cheapest first."""
+    return common.pareto(rows, lambda row: row["ms_per_simulated_s"], lambda row: row["max_error_rel"])
 
 
 def render(results: dict) -> list[str]:

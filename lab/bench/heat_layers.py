@@ -8,6 +8,7 @@ import time
 
 import numpy as np
 
+from lab.bench import common
 from lab.bench.common import build_plane, pyplot, save
 from sims.tiles import TILE
 
@@ -88,10 +89,8 @@ def errors(run: dict, reference: dict) -> dict:
 
 
 def pareto(rows: list[dict]) -> list[dict]:
-    """Rows no other row beats on both cost (ms_per_step) and error (worst of the area and depth errors, relative)."""
-    def worst(row):
-        return max(abs(row["error"]["area"]), abs(row["error"]["depth"]))
-    return [row for row in rows if not any(o["ms_per_step"] <= row["ms_per_step"] and worst(o) < worst(row) for o in rows)]
+    """The runs no other run beats in both cost (ms_per_step) and error (worst of the area and depth errors)."""
+    return common.pareto(rows, lambda row: row["ms_per_step"], lambda row: max(abs(row["error"]["area"]), abs(row["error"]["depth"])))
 
 
 def depth_against_contact(tips_c=(150.0, 250.0, 400.0), contacts_s=(0.5, 1.0, 2.0, 4.0), cool_s: float = 10.0,

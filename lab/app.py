@@ -464,11 +464,14 @@ class LabApp:
         if "bleeding" in metrics:
             b = metrics["bleeding"]
             blood = b["blood_area_mm2"]
-            lines.append(f"particles alive: {b['alive']} / {b['capacity']}, blood: {blood:.0f} mm2, suctioned: {b['suctioned']}")
+            lines.append(f"blood ({b['method'].replace('_', ' ')}): {b['volume_ml']:.3f} ml on {blood:.0f} mm2, deepest {b['max_thickness_mm']:.2f} mm; "
+                         f"suctioned {b['suctioned_ml']:.3f} ml, off the edge {b['left_surface_ml']:.3f} ml")
+            if b["method"] == "particles":
+                lines.append(f"particles alive: {b['alive']} / {b['capacity']}")
             lines.append(f"bleed points: {len(scene.bleed_points)} of {MAX_BLEED_POINTS} at most"
                          + (" (click the tissue to add one)" if self.armed_click else ""))
-            if b["dropped_pool_full"]:
-                lines.append(f"**pool full: {b['dropped_pool_full']} particles not spawned**")
+            if b.get("dropped_pool_full"):
+                lines.append(f"**pool full: {b['dropped_pool_full']} particles not spawned (the height-field method has no pool)**")
         if session.script_ended:
             lines.append("the scripted drill has ended: **Replay the script** plays it again")
         if session.rebuild_pending:

@@ -41,13 +41,11 @@ def write_png(path: Path, rgb) -> None:
     Image.fromarray(rgb).save(path, format="PNG")
 
 
-def _warn_pool_full(scene: Scene, bar) -> None:
-    """Say once, on stderr, that the particle pool filled up (metrics count every dropped particle)."""
-    bleeding = scene.bleeding
-    if bleeding is not None and bleeding.pool_full_reported and not bleeding.pool_full_logged:
-        bleeding.pool_full_logged = True
-        bar.write(f"warning: {scene.name}: bleeding pool full ({bleeding.capacity} particles) at t = {scene.time_s:.2f} s; "
-                  "new blood is dropped and counted in metrics.json (raise bleeding.capacity)", file=sys.stderr)
+def _warn_blood_lost(scene: Scene, bar) -> None:
+    """Say once, on stderr, why the bleeding method lost blood (metrics count all of it)."""
+    warning = None if scene.bleeding is None else scene.bleeding.take_warning()
+    if warning:
+        bar.write(f"warning: {scene.name}: at t = {scene.time_s:.2f} s: {warning}", file=sys.stderr)
 
 
 def check_scene(scene: Scene) -> None:
@@ -130,7 +128,7 @@ def _simulate(scene: Scene, folder: Path, total: int, frame_every: int, progress
                 bad = scene.non_finite_field()
                 if bad:
                     raise SimulationDiverged(f"{bad} became non-finite at step {index} (t = {scene.time_s:.4g} s)")
-            _warn_pool_full(scene, bar)
+            _warn_blood_lost(scene, bar)
             if frame_every and index % frame_every == 0:
                 write_png(folder / "frames" / f"frame_{index // frame_every:05d}.png", scene.composite())
     wall = time.perf_counter() - start

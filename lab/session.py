@@ -36,11 +36,11 @@ FINITE_CHECK_EVERY = 25   # steps between checks of the fields for NaN and inf
 MAX_BACKLOG_S = 0.5       # the simulation drops a backlog larger than this rather than spiral
 SPEED_RANGE = (0.1, 4.0)  # x real time
 REST_DEPTH_MM = 0.2       # a tool rested on the tissue presses its tip this far in
-QUALITY = {  # name: scene overrides (texture texels, fluid substeps)
+QUALITY = {  # name: scene overrides (texture texels; fluid substeps of either bleeding method, the one in use applies)
     "scene file": {},
-    "fast": {"texture_size": 256, "bleeding.substeps": 1},
-    "balanced": {"texture_size": 512, "bleeding.substeps": 2},
-    "accurate": {"texture_size": 1024, "bleeding.substeps": 4},
+    "fast": {"texture_size": 256, "bleeding.substeps": 1, "bleeding.cfl": 0.6},
+    "balanced": {"texture_size": 512, "bleeding.substeps": 2, "bleeding.cfl": 0.4},
+    "accurate": {"texture_size": 1024, "bleeding.substeps": 4, "bleeding.cfl": 0.25},
 }
 SPARE_SUCTION = {"radius_mm": 4.0, "rate_ml_s": 0.2}
 SPARE_SUCKER_SHAPE = {"type": "capsule", "radius_mm": 1.5, "length_mm": 20.0, "width_mm": 1.0, "thickness_mm": 1.0, "file": None, "sdf_resolution": 8}
@@ -53,6 +53,17 @@ def override_key_values(texts) -> dict:
         parts, value = parse_override(text)
         values[".".join(parts)] = value
     return values
+
+
+def fitting_overrides(path: Path, overrides: dict) -> dict:
+    """The overrides without the `bleeding.` keys that the scene's bleeding method does not have (a quality preset
+    names the keys of both methods). Raises ConfigError as load_scene_config does."""
+    def general(key: str) -> bool:
+        return not key.startswith("bleeding.") or key == "bleeding.method"
+
+    plain = {key: value for key, value in overrides.items() if general(key)}
+    table = params.BLEEDING_METHODS[load_scene_config(path, override_texts(plain))["bleeding"]["method"]]
+    return {key: value for key, value in overrides.items() if general(key) or key.split(".")[1] in table}
 
 
 def override_texts(overrides: dict) -> list[str]:
@@ -432,7 +443,7 @@ class LabSession:
         self.on_build("start", name, 0.0)
         started = time.perf_counter()
         try:
-            config = load_scene_config(path, override_texts(self.overrides))
+            config = load_scene_config(path, override_texts(fitting_overrides(path, self.overrides)))
             inputs = load_inputs(config)
         except ConfigError as exc:
             if first:

@@ -4,7 +4,9 @@
 `explicit` (automatic substeps below the stability limit) or `implicit` (one backward-Euler step per
 time step, conjugate gradient), e.g. `cautery: {scheme: implicit}` or `--set cautery.scheme=implicit`.
 `cautery.bottom` (optional, default body): below the deepest heat layer the tissue is held at body temperature
-(`body`) or insulated (`insulated`). Keys in sims.params.RETIRED load with a note in config["notes"] and are ignored.
+(`body`) or insulated (`insulated`). `bleeding.method` (optional, default particles) picks the bleeding method
+(`particles` or `height_field`, sims.models); the other `bleeding` keys are that method's parameters.
+Keys in sims.params.RETIRED load with a note in config["notes"] and are ignored.
 """
 from __future__ import annotations
 
@@ -195,6 +197,28 @@ class Record:
         return clean
 
 
+class MethodRecord(Record):
+    """A mapping whose keys depend on its `method` key, one of `methods` ({name: fields}; the first is the default)."""
+
+    def __init__(self, methods: dict[str, dict]):
+        self.methods, self.default_method = methods, next(iter(methods))
+        super().__init__(methods[self.default_method])
+        self.default = {}
+
+    def validate(self, value, key, ctx):
+        value = {} if value is None else value
+        if not isinstance(value, dict):
+            ctx.fail(key, f"expected a mapping, got {type(value).__name__}")
+        method = Text(choices=tuple(self.methods)).validate(value.get("method") or self.default_method, _join(key, "method"), ctx)
+        fields = self.methods[method]
+        for name in value:
+            other = next((other for other, keys in self.methods.items() if name in keys), None)
+            if name != "method" and name not in fields and other is not None:
+                ctx.fail(_join(key, name), f"a key of the {other} method; this scene's {_join(key, 'method')} is {method}")
+        clean = Record(fields).validate({name: item for name, item in value.items() if name != "method"}, key, ctx)
+        return {"method": method, **clean}
+
+
 def _numbers(table: dict[str, params.ParamSpec], default=True) -> dict:
     return {name: Number(spec, default) for name, spec in table.items()}
 
@@ -327,7 +351,7 @@ SCENE = Record(
         "tissue": Record({"preset": Text("liver", choices=tuple(params.TISSUE_PRESETS)), **_numbers(params.TISSUE, default=None)}, check=_check_tissue),
         "cautery": Record({**_numbers(params.CAUTERY), "scheme": Text("explicit", choices=CAUTERY_SCHEMES),
                            "bottom": Text("body", choices=CAUTERY_BOTTOMS)}),
-        "bleeding": Record(_numbers(params.BLEEDING)),
+        "bleeding": MethodRecord({method: _numbers(table) for method, table in params.BLEEDING_METHODS.items()}),
         "look": Record({"stages": ListOf(_STAGE, default=DEFAULT_STAGES, max_len=8)}, check=lambda look, key, ctx: _check_stages(look["stages"], _join(key, "stages"), ctx)),
         "instruments": ListOf(_INSTRUMENT, max_len=8),
         "bleed_points": ListOf(_BLEED_POINT),

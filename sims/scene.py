@@ -19,7 +19,7 @@ _MODEL_GROUPS = (
     ("", {name: spec for name, spec in params.SIMULATION.items() if name != "duration_s"}, None, {"texture_size"}),
     ("tissue", params.TISSUE, "cautery", set()),
     ("cautery", params.CAUTERY, "cautery", {"layers", "depth_mm", "heat_grid_divisor"}),
-    ("bleeding", params.BLEEDING, "bleeding", {"capacity"}),
+    ("bleeding", None, "bleeding", None),  # the table and rebuild keys of the scene's bleeding method (sims.models)
 )
 SHAPE_PARAMETERS = {"ball": ("radius_mm",), "capsule": ("radius_mm", "length_mm"), "spatula": ("width_mm", "thickness_mm", "length_mm"),
                     "mesh": ("sdf_resolution",)}
@@ -176,10 +176,10 @@ class Scene:
         if "bleeding" in self.models:
             from scipy.spatial import cKDTree
 
-            from sims.sph import Bleeding, BleedPoint, auto_capacity
+            from sims.models import build_bleeding
+            from sims.bleed_points import BleedPoint
 
-            capacity = auto_capacity(config["bleed_points"], config["bleeding"], config["duration_s"])
-            self.bleeding = Bleeding(self.surface, config["bleeding"], config["gravity_mm_s2"], capacity)
+            self.bleeding = build_bleeding(self.surface, config)
             self.bleed_points = [BleedPoint(item) for item in config["bleed_points"]]
             rows, cols = np.nonzero(self.surface.mask)
             self._texels = np.stack([rows, cols], axis=1)
@@ -284,6 +284,11 @@ class Scene:
         for group, specs, model, rebuild in _MODEL_GROUPS:
             if model is not None and model not in self.models:
                 continue
+            if group == "bleeding":
+                from sims.models import REBUILD_KEYS
+
+                method = self.config["bleeding"]["method"]
+                specs, rebuild = params.BLEEDING_METHODS[method], REBUILD_KEYS[method]
             for name, spec in specs.items():
                 key = f"{group}.{name}" if group else name
                 table[key] = SceneParameter(spec, name not in rebuild, key)
@@ -516,7 +521,7 @@ class Scene:
 
     def add_bleed_point(self, name: str, position_mm, rate_ml_s: float, radius_mm: float = 0.5):
         """A new bleed point from now on (bleeding model only); returns it."""
-        from sims.sph import BleedPoint
+        from sims.bleed_points import BleedPoint
 
         if self.bleeding is None:
             raise Refused("this scene has no bleeding model")
@@ -578,7 +583,7 @@ class Scene:
         if self.cautery is not None:
             state.update(self.heat_display.arrays())
         if self.bleeding is not None:
-            state.update(self.bleeding.particle_arrays())
+            state.update(self.bleeding.state_arrays())
         return state
 
     def non_finite_field(self) -> str | None:
@@ -595,13 +600,7 @@ class Scene:
                                  "heat_substeps_per_step": self.cautery.substeps(self.time_step_s),
                                  "heat_solver_iterations_last_step": self.cautery.last_iterations}
         if self.bleeding is not None:
-            result["bleeding"] = {
-                **self.bleeding.accounting(),
-                "blood_area_mm2": self.bleeding.blood_area_mm2(),
-                "capacity": self.bleeding.capacity,
-                "particle_volume_ml": self.bleeding.particle_volume_ml,
-                "bleed_rates_ml_s": self.bleed_rates(),
-            }
+            result["bleeding"] = {**self.bleeding.metrics(), "bleed_rates_ml_s": self.bleed_rates()}
         return result
 
 

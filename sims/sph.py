@@ -33,7 +33,6 @@ import math
 import numpy as np
 import taichi as ti
 
-from sims import paths
 
 ALIVE, SUCTIONED, LEFT_SURFACE, EXPIRED = 0, 1, 2, 3
 MAX_NEIGHBOURS = 48         # neighbours in range that one particle interacts with, at most (kept in a list)
@@ -75,11 +74,13 @@ def _hash01(a, b):
 
 @ti.data_oriented
 class Bleeding:
-    """Particle pool, neighbour grid and display splat on a TissueSurface.
+    """Particle pool, neighbour grid and display splat on a TissueSurface (bleeding method `particles`).
 
     walls: keep particles inside the valid texels (their velocity into the wall removed) instead of
     removing those that leave; off in the product.
     """
+
+    method = "particles"
 
     def __init__(self, surface, params: dict, gravity_mm_s2, capacity: int, walls: bool = False):
         self.surface, self.params = surface, params
@@ -607,6 +608,34 @@ class Bleeding:
             "particle_velocity_mm_s": (ex * vel[:, :1] + ey * vel[:, 1:]).astype(np.float32),
         }
 
+    def metrics(self) -> dict:
+        """metrics.json `bleeding` (sims.models.BleedingMethod): the common keys in ml, mm^2 and mm, then the pool's
+        counts (particles)."""
+        counts, ml = self.accounting(), self.particle_volume_ml
+        thickness = self.blood_thickness_mm()
+        return {"method": self.method, "blood_area_mm2": self.blood_area_mm2(),
+                "max_thickness_mm": float(thickness.max(initial=0.0)), "volume_ml": counts["alive"] * ml,
+                "spawned_ml": counts["spawned"] * ml, "on_surface_ml": counts["alive"] * ml,
+                "suctioned_ml": counts["suctioned"] * ml, "left_surface_ml": counts["left_surface"] * ml,
+                "dried_ml": counts["expired"] * ml, **counts, "capacity": self.capacity, "particle_volume_ml": ml}
+
+    def state_arrays(self) -> dict:
+        """state.npz: blood_thickness_mm (H, W) from the splat of this step's particles, and particle_arrays()."""
+        return {"blood_thickness_mm": self.blood_thickness_mm(), **self.particle_arrays()}
+
+    def blood_thickness_mm(self) -> np.ndarray:
+        """(H, W) film thickness (mm) of this step's particles, splatted as the display does (without its trails)."""
+        self._film(self.fresh_thickness, fade=0.0)
+        return self.fresh_thickness.to_numpy()
+
+    def take_warning(self) -> str | None:
+        """Once: why blood was lost (the pool filled up), else None."""
+        if not self.pool_full_reported or self.pool_full_logged:
+            return None
+        self.pool_full_logged = True
+        return (f"bleeding pool full ({self.capacity} particles): new blood is dropped and counted in metrics.json; "
+                "raise bleeding.capacity, or use bleeding.method: height_field, whose cost does not grow with the volume")
+
     def blood_area_mm2(self) -> float:
         """Surface area (mm^2) of texels whose displayed film is at least a quarter of the rest thickness."""
         self._film(self.fresh_thickness, fade=0.0)  # this step's blood only; the display keeps its fading trails
@@ -660,23 +689,6 @@ class Bleeding:
                 total += self.blur_tmp[rr, c] * (radius_y + 1 - ti.abs(k))
             fresh = total / ((radius_y + 1) * (radius_y + 1) * self.texel_area[r, c])
             out[r, c] = ti.max(fresh, fade * out[r, c])
-
-
-class BleedPoint:
-    """A validated scene bleed point: position and rate (ml/s), linear along its keyframes, on in [start, stop)."""
-
-    def __init__(self, item: dict):
-        self.name, self.item = item["name"], item
-
-    def position_at(self, t_s: float) -> np.ndarray:
-        return np.asarray(paths.interpolate(self.item["path"], "position_mm", t_s, self.item["position_mm"]), np.float64)
-
-    def rate_at(self, t_s: float) -> float:
-        """ml/s before coagulation; 0 outside [start_s, stop_s)."""
-        stop = self.item["stop_s"]
-        if t_s < self.item["start_s"] or (stop is not None and t_s >= stop):
-            return 0.0
-        return float(paths.interpolate(self.item["path"], "rate_ml_s", t_s, self.item["rate_ml_s"]))
 
 
 def auto_capacity(bleed_points: list, params: dict, duration_s: float) -> int:

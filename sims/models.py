@@ -1,0 +1,50 @@
+"""The models a scene can run, built by name: the cautery (sims.cautery) and the bleeding methods a scene picks with
+`bleeding.method`. Their parameter tables live in sims.params (the scene files are checked without Taichi).
+
+Every bleeding method is one module with the same small interface (BleedingMethod); the scene, the lab and the
+runner use only that, so the sliders, stats, metrics and outputs follow the method in use.
+"""
+import importlib
+from typing import Protocol
+
+import numpy as np
+
+BLEEDING_CLASSES = {"particles": ("sims.sph", "Bleeding"), "height_field": ("sims.height_field", "HeightFieldBleeding")}
+REBUILD_KEYS = {"particles": {"capacity"}, "height_field": set()}  # parameters read only when the model is built
+
+
+class BleedingMethod(Protocol):
+    """Blood on a TissueSurface, in texture space. Volumes in ml, lengths in mm, times in s."""
+
+    method: str    # its name in BLEEDING_CLASSES
+    params: dict   # the scene's bleeding parameters (sims.params.BLEEDING_METHODS[method]), read every step
+    thickness: object  # Taichi field (H, W): the displayed blood thickness (mm), with its fading trails
+
+    def reset(self) -> None: ...
+    def set_gravity(self, gravity_mm_s2) -> None: ...
+    def spawn_rate(self, key, texel_rc, rate_ml_s: float, dt_s: float, radius_mm: float) -> int: ...
+    def step(self, dt_s: float, suction: list = ()) -> None:
+        """suction: [(position_mm (3,), radius_mm, rate_ml_s)] of the suction tools switched on."""
+    def update_display(self, fade: float) -> None: ...
+    def blood_area_mm2(self) -> float: ...
+    def metrics(self) -> dict:
+        """method, blood_area_mm2, max_thickness_mm, volume_ml and spawned_ml = on_surface_ml + suctioned_ml +
+        left_surface_ml + dried_ml, then the method's own keys."""
+    def state_arrays(self) -> dict[str, np.ndarray]:
+        """blood_thickness_mm (H, W), then the method's own arrays."""
+    def take_warning(self) -> str | None:
+        """Once: a reason blood was lost, else None."""
+
+
+def build_bleeding(surface, config: dict) -> BleedingMethod:
+    """The bleeding method a validated scene config names, on a TissueSurface."""
+    bleeding = config["bleeding"]
+    module, name = BLEEDING_CLASSES[bleeding["method"]]
+    cls = getattr(importlib.import_module(module), name)
+    if bleeding["method"] == "particles":
+        from sims.sph import auto_capacity
+
+        capacity = auto_capacity(config["bleed_points"], bleeding, config["duration_s"])
+        return cls(surface, bleeding, config["gravity_mm_s2"], capacity)
+    return cls(surface, bleeding, config["gravity_mm_s2"])
+

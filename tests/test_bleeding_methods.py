@@ -1,0 +1,49 @@
+"""A scene picks its bleeding method (bleeding.method, sims.models): the parameters, metrics and state arrays come from
+the method in use, with the common keys in the same units for both, and a key of the other method is refused."""
+import numpy as np
+import pytest
+
+from sims import params
+from sims.config import REPO_ROOT, ConfigError, load_scene_config
+from sims.scene import Scene
+
+COMMON = ("blood_area_mm2", "max_thickness_mm", "volume_ml", "spawned_ml", "on_surface_ml", "suctioned_ml",
+          "left_surface_ml", "dried_ml")
+
+
+def bleeding_scene(method: str) -> Scene:
+    return Scene.from_file(REPO_ROOT / "scenes" / "bleeding.yaml",
+                           ["texture_size=64", "bleeding={}", f"bleeding.method={method}", "bleed_points.0.rate_ml_s=0.2"])
+
+
+@pytest.mark.parametrize("method", ["particles", "height_field"])
+def test_the_method_in_use_gives_the_parameters_metrics_and_state(method):
+    scene = bleeding_scene(method)
+    assert scene.bleeding.method == method
+    offered = {key.split(".", 1)[1] for key in scene.parameters() if key.startswith("bleeding.")}
+    assert offered == set(params.BLEEDING_METHODS[method])  # the sliders follow the method
+    for _ in range(40):
+        scene.step()
+    metrics = scene.metrics()["bleeding"]
+    assert metrics["method"] == method
+    spawned = 40 * 0.01 * 0.2
+    assert metrics["spawned_ml"] == pytest.approx(spawned, rel=0.1)  # ml for both methods (particles: whole ones)
+    accounted = metrics["on_surface_ml"] + metrics["suctioned_ml"] + metrics["left_surface_ml"] + metrics["dried_ml"]
+    assert accounted == pytest.approx(metrics["spawned_ml"], rel=1e-9)
+    assert metrics["volume_ml"] == metrics["on_surface_ml"] > 0.5 * spawned
+    assert metrics["blood_area_mm2"] > 0 and metrics["max_thickness_mm"] > 0
+    thickness = scene.state_arrays()["blood_thickness_mm"]
+    assert thickness.shape == scene.surface.mask.shape and np.isfinite(thickness).all()
+    assert thickness.max() == pytest.approx(metrics["max_thickness_mm"], rel=1e-5)
+    assert scene.composite().shape == (64, 64, 3)
+
+
+def test_a_key_of_the_other_method_is_refused_with_the_method_named():
+    path = REPO_ROOT / "scenes" / "bleeding.yaml"  # its bleeding keys are the particles'
+    with pytest.raises(ConfigError) as error:
+        load_scene_config(path, ["bleeding.method=height_field"])
+    assert error.value.key == "bleeding.particle_spacing_mm" and "particles method" in error.value.message
+    with pytest.raises(ConfigError) as error:
+        load_scene_config(path, ["bleeding.method=goo"])
+    assert error.value.key == "bleeding.method"
+    assert load_scene_config(path)["bleeding"]["method"] == "particles"  # the default

@@ -248,8 +248,11 @@ def test_one_click_adds_one_bleed_point_and_clicks_are_capped(lab, hostile):
     assert len(lab.scene.bleed_points) == MAX_BLEED_POINTS and "at most" in lab.session.notice
     for _ in range(MAX_BLEED_POINTS - len(before)):  # one at a time, as a hand clicks (a burst lost one in CI once)
         count = len(lab.scene.bleed_points)
-        hostile.click_button("Remove last bleed point")
-        run(lab, lambda: len(lab.scene.bleed_points) < count)
+        for _ in range(3):  # a click lost on a loaded machine (CI, 2026-12-03: none arrived in 90 s) is clicked again
+            hostile.click_button("Remove last bleed point")
+            if lab.run(until=lambda: len(lab.scene.bleed_points) < count, timeout_s=30.0):
+                break
+        assert len(lab.scene.bleed_points) == count - 1
     assert [point.name for point in lab.scene.bleed_points] == before
     lab.armed_click = False
 

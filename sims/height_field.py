@@ -63,6 +63,7 @@ import numpy as np
 import taichi as ti
 
 from sims.cautery import NEIGHBOURS, direction_coefficients, edge_weights
+from sims.hashing import hash01
 from sims.seams import TOLERANCE as SEAM_TOLERANCE
 from sims.seams import seam_links
 from sims.tiles import TILE, TileSchedule
@@ -79,15 +80,6 @@ AREA_DEPTH_FRACTION = 0.1       # blood_area_mm2 counts texels at least this fra
 
 def kinematic_viscosity_mm2_s(params: dict) -> float:
     return params["blood_viscosity_mpa_s"] * 1e-3 / params["blood_density_kg_m3"] * 1e6
-
-
-@ti.func
-def _hash01(a, b):
-    """Deterministic pseudo-random number in [0, 1) from two integers (PCG-style mix)."""
-    h = ti.cast(a, ti.u32) * ti.u32(747796405) + ti.cast(b, ti.u32) * ti.u32(2891336453) + ti.u32(277803737)
-    h = ((h >> ((h >> 28) + ti.u32(4))) ^ h) * ti.u32(277803737)
-    h = (h >> 22) ^ h
-    return ti.cast(h >> 8, ti.f32) / 16777216.0
 
 
 @ti.data_oriented
@@ -522,7 +514,7 @@ class HeightFieldBleeding:
     def _units(self, x, pipe, seed):
         """x >= 0 units stochastically rounded (unbiased: a flow of less than a unit per substep still moves blood and
         a residual force cannot build up a velocity that moves nothing)."""
-        return ti.cast(ti.floor(x + _hash01(pipe, seed)), ti.i32)
+        return ti.cast(ti.floor(x + hash01(pipe, seed)), ti.i32)
 
     @ti.func
     def _move(self, amount, rs, cs, rd, cd):
@@ -604,7 +596,7 @@ class HeightFieldBleeding:
                         taken = ti.min(volume, ti.cast(ti.cast(volume, ti.f32) * self.tool_fraction[k], ti.i32))
                         volume -= taken
                         self.counts[t, SUCTIONED] += taken
-                dither = _hash01(r * self.width + c, step)  # stochastic rounding: unbiased, and a film does vanish
+                dither = hash01(r * self.width + c, step)  # stochastic rounding: unbiased, and a film does vanish
                 dried = ti.min(volume, ti.cast(ti.floor(ti.cast(volume, ti.f32) * dry_fraction + dither), ti.i32))
                 volume -= dried
                 self.counts[t, DRIED] += dried

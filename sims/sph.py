@@ -33,6 +33,8 @@ import math
 import numpy as np
 import taichi as ti
 
+from sims.hashing import hash01
+
 
 ALIVE, SUCTIONED, LEFT_SURFACE, EXPIRED = 0, 1, 2, 3
 MAX_NEIGHBOURS = 48         # neighbours in range that one particle interacts with, at most (kept in a list)
@@ -61,15 +63,6 @@ def particle_volume_ml(params: dict) -> float:
     """Blood volume one particle carries: hexagonal cell area times film thickness."""
     area_mm2 = math.sqrt(3.0) / 2.0 * params["particle_spacing_mm"] ** 2
     return area_mm2 * params["film_thickness_mm"] * 1e-3
-
-
-@ti.func
-def _hash01(a, b):
-    """Deterministic pseudo-random number in [0, 1) from two u32 integers (PCG-style mix)."""
-    h = ti.cast(a, ti.u32) * ti.u32(747796405) + ti.cast(b, ti.u32) * ti.u32(2891336453) + ti.u32(277803737)
-    h = ((h >> ((h >> 28) + ti.u32(4))) ^ h) * ti.u32(277803737)
-    h = (h >> 22) ^ h
-    return ti.cast(h >> 8, ti.f32) / 16777216.0
 
 
 @ti.data_oriented
@@ -234,8 +227,8 @@ class Bleeding:
             m = self.texel_metric[row, col]
             e1 = ex.normalized()
             e2 = (ey - ey.dot(e1) * e1).normalized()
-            angle = 2.0 * math.pi * _hash01(ti.u32(uid), ti.u32(1))
-            reach = radius_mm * ti.sqrt(_hash01(ti.u32(uid), ti.u32(2)))
+            angle = 2.0 * math.pi * hash01(ti.u32(uid), ti.u32(1))
+            reach = radius_mm * ti.sqrt(hash01(ti.u32(uid), ti.u32(2)))
             offset = reach * (ti.cos(angle) * e1 + ti.sin(angle) * e2)
             b = ti.Vector([ex.dot(offset), ey.dot(offset)])
             det = m[0] * m[2] - m[1] * m[1]
@@ -477,7 +470,7 @@ class Bleeding:
                             push = 0.5 * dt * dt * (p[0] * q + p[1] * q * q)  # mm along r_hat
                             shift -= push / r * d
                         else:  # coincident: separate along a deterministic direction
-                            angle = 2.0 * math.pi * _hash01(ti.u32(self.uid[i]), ti.u32(self.uid[j]))
+                            angle = 2.0 * math.pi * hash01(ti.u32(self.uid[i]), ti.u32(self.uid[j]))
                             shift -= 0.05 * h * ti.Vector([ti.cos(angle), ti.sin(angle)]) / ti.sqrt(self.metric[i][0] + self.metric[i][2])
                 damping = self.drag[i] * dt  # pressure moves the film against the same drag as gravity
                 if damping > 1e-6:
@@ -560,7 +553,7 @@ class Bleeding:
     def _remove_suctioned(self, n: ti.i32, tools: ti.i32, probability: ti.f32, step: ti.i32):
         for i in range(n):
             if self.fate[i] == ALIVE and self._in_suction(i, tools):
-                if _hash01(ti.u32(self.uid[i]), ti.u32(step) + ti.u32(7)) < probability:
+                if hash01(ti.u32(self.uid[i]), ti.u32(step) + ti.u32(7)) < probability:
                     self.fate[i] = SUCTIONED
 
     @ti.kernel

@@ -84,14 +84,18 @@ def kinematic_viscosity_mm2_s(params: dict) -> float:
 
 @ti.data_oriented
 class HeightFieldBleeding:
-    """Blood depth on a TissueSurface (the public methods of sims.sph.Bleeding).
+    """Blood depth on a TissueSurface (sims.models.BleedingMethod).
 
-    walls: open mesh borders hold the blood (no outfall pipes; benchmarks such as the dam break)."""
+    walls: open mesh borders hold the blood (no outfall pipes; benchmarks such as the dam break).
+    display: a sims.resample.GridResampler from this surface's grid onto a finer display grid (bleeding.grid_divisor),
+    or None when blood runs on the display grid itself. With one, `thickness`, the state arrays and the texels
+    spawn_rate takes are on the display grid; depth_mm(), the metrics and the stepping are on this one."""
 
     method = "height_field"
 
-    def __init__(self, surface, params: dict, gravity_mm_s2, walls: bool = False):
-        self.surface, self.params, self.walls = surface, params, bool(walls)
+    def __init__(self, surface, params: dict, gravity_mm_s2, walls: bool = False, display=None):
+        self.surface, self.params, self.walls, self.display = surface, params, bool(walls), display
+        self._same_grid = display is None
         mask = surface.mask
         height, width = mask.shape
         self.height, self.width = height, width
@@ -161,7 +165,8 @@ class HeightFieldBleeding:
         self.inflow = ti.field(ti.i32, shape)           # units received since the clot was last diluted
         self.clot = ti.field(ti.f32, shape)
         self.stain = ti.field(ti.f32, shape)            # largest depth seen, mm
-        self.thickness = ti.field(ti.f32, shape)        # displayed depth, mm
+        self.thickness = ti.field(ti.f32, shape if display is None else display.fine_shape)  # displayed depth, mm
+        self.depth = ti.field(ti.f32, shape)            # depth (mm) read by the display when it is finer
         self.give = ti.field(ti.f32, shape)             # units a pipe of 1 mm width carries per mm/s this substep
         self.scale = ti.field(ti.f32, shape)            # outflow limiter of this substep (1: not limited)
         self.unit_per_area = ti.field(ti.f32, shape)    # mm of depth per unit
@@ -254,13 +259,14 @@ class HeightFieldBleeding:
 
     # --- sources ------------------------------------------------------------------------------
     def spawn_rate(self, key, texel_rc, rate_ml_s: float, dt_s: float, radius_mm: float) -> int:
-        """Add rate_ml_s dt_s ml over the disk of radius_mm (3D) around texel (row, col); returns units added."""
+        """Add rate_ml_s dt_s ml over the disk of radius_mm (3D) around texel (row, col) (of the display grid when
+        there is one); returns units added."""
         budget = self._spawn_budget.get(key, 0.0) + rate_ml_s * dt_s * 1000.0 / self.unit_mm3
         whole = int(min(math.floor(budget), 1 << 30))
         if whole <= 0:
             self._spawn_budget[key] = budget
             return 0
-        row, col = int(texel_rc[0]), int(texel_rc[1])
+        row, col = (int(v) for v in (texel_rc if self.display is None else self.display.coarse_texel(texel_rc)))
         self._touched = True
         reach = min(int(math.ceil(radius_mm / self._min_side_mm)) + 1, max(self.height, self.width))
         disk = (row, col, float(radius_mm))
@@ -330,9 +336,7 @@ class HeightFieldBleeding:
             sub = dt_s / n
             clot_keep = math.exp(-p["clotting_rate_1_s"] * sub)
             for _ in range(n):
-                self._momentum(awake, sub, nu, p["pinning_depth_mm"])
-                self._limit(awake, sub, p["rest_speed_mm_s"], clot_keep)
-                self._transfer(awake, self._substep_count)
+                self._substep(awake, sub, nu, p["pinning_depth_mm"], p["rest_speed_mm_s"], clot_keep, self._substep_count)
                 self._substep_count += 1
             tools = [tool for tool in suction if tool[2] > 0][:MAX_SUCTION_TOOLS]
             if tools:
@@ -401,7 +405,15 @@ class HeightFieldBleeding:
         return ti.min(ti.max(un, -bound), bound)
 
     @ti.kernel
-    def _momentum(self, n: ti.i32, dt: ti.f32, nu: ti.f32, pin: ti.f32):
+    def _substep(self, n: ti.i32, dt: ti.f32, nu: ti.f32, pin: ti.f32, rest_speed: ti.f32, clot_keep: ti.f32, seed: ti.i32):
+        """One substep of the n awake tiles, in one launch (its loops run one after the other): _momentum, _limit,
+        _transfer."""
+        self._momentum(n, dt, nu, pin)
+        self._limit(n, dt, rest_speed, clot_keep)
+        self._transfer(n, seed)
+
+    @ti.func
+    def _momentum(self, n, dt, nu, pin):
         """New velocities (buffer 1) of the pipes each texel owns, from buffer 0; then copied back (below)."""
         for i, j in ti.ndrange(n, TILE * TILE):
             t, r, c, inside = self.tiles.texel(i, j)
@@ -452,8 +464,8 @@ class HeightFieldBleeding:
                         length = self.link_length[m]
                         self.link_u[1, m] = self._finish(self.link_u[0, m] + dt * dphi / length, length, h, h_other, dt, nu, pin, False)
 
-    @ti.kernel
-    def _limit(self, n: ti.i32, dt: ti.f32, rest_speed: ti.f32, clot_keep: ti.f32):
+    @ti.func
+    def _limit(self, n, dt, rest_speed, clot_keep):
         """New velocities into buffer 0; per texel the outflow scale (give), clot dilution and growth."""
         for i, j in ti.ndrange(n, TILE * TILE):
             t, r, c, inside = self.tiles.texel(i, j)
@@ -524,8 +536,8 @@ class HeightFieldBleeding:
             self.inflow[rd, cd] += amount
             self.tiles.hot[(rd // TILE) * self.tiles.cols + cd // TILE] = 0
 
-    @ti.kernel
-    def _transfer(self, n: ti.i32, seed: ti.i32):
+    @ti.func
+    def _transfer(self, n, seed):
         """Integer units through every owned pipe, donor to receiver (atomics: exact, order independent); the pipe
         velocity keeps the donor's limiter (what really flowed, Mei et al.), so it cannot grow where nothing moves."""
         for i, j in ti.ndrange(n, TILE * TILE):
@@ -604,13 +616,25 @@ class HeightFieldBleeding:
 
     # --- outputs ------------------------------------------------------------------------------
     def update_display(self, fade: float) -> None:
-        """thickness = max(depth, fade * previous thickness)."""
+        """thickness = max(depth, fade * previous thickness), depth read bilinearly on a finer display grid."""
+        if self.display is not None:
+            self._depths()
         self._display(float(fade))
+
+    @ti.kernel
+    def _depths(self):
+        for r, c in self.depth:
+            self.depth[r, c] = self._depth(r, c)
 
     @ti.kernel
     def _display(self, fade: ti.f32):
         for r, c in self.thickness:
-            self.thickness[r, c] = ti.max(self._depth(r, c), fade * self.thickness[r, c])
+            h = 0.0
+            if ti.static(self._same_grid):
+                h = self._depth(r, c)
+            else:
+                h = self.display.sample(self.depth, r, c)
+            self.thickness[r, c] = ti.max(h, fade * self.thickness[r, c])
 
     def depth_mm(self) -> np.ndarray:
         """(H, W) blood depth along the normal, mm (float64 from the exact volumes)."""
@@ -625,9 +649,11 @@ class HeightFieldBleeding:
         return np.concatenate([owned, links])
 
     def state_arrays(self) -> dict:
-        """blood_thickness_mm (H, W) (DESIGN: state.npz with the height field), the stain and the clot fraction."""
-        return {"blood_thickness_mm": self.depth_mm().astype(np.float32), "blood_stain_mm": self.stain.to_numpy(),
-                "blood_clot": self.clot.to_numpy()}
+        """blood_thickness_mm (H, W) (DESIGN: state.npz with the height field), the stain and the clot fraction, on
+        the display grid."""
+        arrays = {"blood_thickness_mm": self.depth_mm().astype(np.float32), "blood_stain_mm": self.stain.to_numpy(),
+                  "blood_clot": self.clot.to_numpy()}
+        return arrays if self.display is None else {name: self.display.array(values) for name, values in arrays.items()}
 
     def accounting(self) -> dict:
         """ml: spawned = on_surface + suctioned + left_surface + dried (exact in units of unit_mm3)."""

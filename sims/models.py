@@ -10,7 +10,7 @@ from typing import Protocol
 import numpy as np
 
 BLEEDING_CLASSES = {"particles": ("sims.sph", "Bleeding"), "height_field": ("sims.height_field", "HeightFieldBleeding")}
-REBUILD_KEYS = {"particles": {"capacity"}, "height_field": set()}  # parameters read only when the model is built
+REBUILD_KEYS = {"particles": {"capacity"}, "height_field": {"grid_divisor"}}  # parameters read only when the model is built
 
 
 class BleedingMethod(Protocol):
@@ -46,5 +46,8 @@ def build_bleeding(surface, config: dict) -> BleedingMethod:
 
         capacity = auto_capacity(config["bleed_points"], bleeding, config["duration_s"])
         return cls(surface, bleeding, config["gravity_mm_s2"], capacity)
-    return cls(surface, bleeding, config["gravity_mm_s2"])
+    from sims.resample import model_grid
+
+    grid, resampler = model_grid(surface, bleeding["grid_divisor"])
+    return cls(grid, bleeding, config["gravity_mm_s2"], display=resampler)
 

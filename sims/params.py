@@ -124,6 +124,8 @@ HEIGHT_FIELD = _table(
     ParamSpec("display_fade_s", "s", 0.2, 0.0, 5.0, "blood display keeps traces of moving blood for about this long"),
     ParamSpec("cfl", "", 0.4, 0.05, 0.9, "substeps are added so that the fastest wave crosses this fraction of the shortest pipe per substep"),
     ParamSpec("max_substeps", "", 64, 1, 512, "upper bound of the automatic substep count per step", integer=True),
+    ParamSpec("grid_divisor", "x", 4, 1, 8, "blood runs on a grid this many times coarser than the display texture "
+              "(the display reads it bilinearly); fewer texels and fewer substeps", integer=True),
 )
 
 # Bleeding methods (scene key bleeding.method) and their parameter tables; the first is the default. The particles stay

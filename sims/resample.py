@@ -7,11 +7,32 @@ the coarse grid around its own (u, v), keeping only taps on the surface whose 3D
 in UV space; the kept weights are renormalised. A display texel with no such tap (a chart's rim finer than the coarse
 grid) reads the coarse texel nearest in 3D. Every value read is a convex combination of coarse values: bounds hold.
 """
+import math
+
 import numpy as np
 import taichi as ti
 from scipy.spatial import cKDTree
 
 TAPS = 4
+
+
+def coarse_grid_size(texture_size: int, divisor: int) -> int:
+    """Texels per side of a model's grid under a display of texture_size (cautery.heat_grid_divisor,
+    bleeding.grid_divisor): texture_size / divisor, at least 16."""
+    return max(16, int(math.ceil(texture_size / divisor)))
+
+
+def model_grid(display, divisor: int):
+    """(grid, resampler) of a model that runs texture_size / divisor texels per side under the display TissueSurface:
+    the display itself and None when that is its own size, else the coarser surface and a GridResampler onto the
+    display."""
+    from sims.surface import surface_at
+
+    size = coarse_grid_size(display.size, divisor)
+    if size == display.size:
+        return display, None
+    grid = surface_at(display, size)
+    return grid, GridResampler(grid, display)
 
 
 def bilinear_taps(coarse, fine) -> tuple[np.ndarray, np.ndarray]:

@@ -115,11 +115,6 @@ def load_inputs(config: dict) -> SceneInputs:
     return SceneInputs(mesh, textures)
 
 
-def heat_grid_size(texture_size: int, divisor: int) -> int:
-    """Texels per side of the heat grid (cautery.heat_grid_divisor): texture_size / divisor, at least 16."""
-    return max(16, int(math.ceil(texture_size / divisor)))
-
-
 class Scene:
     """Everything a browser or a script does with a scene. Time advances in fixed steps of time_step_s."""
 
@@ -132,9 +127,10 @@ class Scene:
         size = config["texture_size"]
         if "cautery" in config["models"]:  # before anything is read or built: a refused size costs nothing
             from sims.cautery import LayerBudget, check_layer_budget
+            from sims.resample import coarse_grid_size
 
             try:
-                check_layer_budget(heat_grid_size(size, config["cautery"]["heat_grid_divisor"]), config["cautery"]["layers"])
+                check_layer_budget(coarse_grid_size(size, config["cautery"]["heat_grid_divisor"]), config["cautery"]["layers"])
             except LayerBudget as exc:
                 raise ConfigError(self.file, "cautery.layers", str(exc)) from None
         inputs = inputs or load_inputs(config)
@@ -164,15 +160,13 @@ class Scene:
             from sims.cautery import Cautery
             from sims.heat_display import HeatDisplay
             from sims.instruments import InstrumentFields
-            from sims.resample import GridResampler
-            from sims.surface import surface_at
+            from sims.resample import model_grid
 
-            heat_size = heat_grid_size(size, config["cautery"]["heat_grid_divisor"])
-            self.heat_surface = self.surface if heat_size == size else surface_at(self.surface, heat_size)
+            self.heat_surface, resampler = model_grid(self.surface, config["cautery"]["heat_grid_divisor"])
             self.instrument_fields = InstrumentFields([tool for tool in self.instruments if tool.suction is None])
             self.cautery = Cautery(self.heat_surface, config["tissue"], config["cautery"], self.instrument_fields,
                                    scheme=config["cautery"]["scheme"])
-            self.heat_display = HeatDisplay(self.cautery, None if heat_size == size else GridResampler(self.heat_surface, self.surface))
+            self.heat_display = HeatDisplay(self.cautery, resampler)
         if "bleeding" in self.models:
             from scipy.spatial import cKDTree
 

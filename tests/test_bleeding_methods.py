@@ -11,14 +11,14 @@ COMMON = ("blood_area_mm2", "max_thickness_mm", "volume_ml", "spawned_ml", "on_s
           "left_surface_ml", "dried_ml")
 
 
-def bleeding_scene(method: str) -> Scene:
+def bleeding_scene(method: str, *changes: str, size: int = 64) -> Scene:
     return Scene.from_file(REPO_ROOT / "scenes" / "bleeding.yaml",
-                           ["texture_size=64", "bleeding={}", f"bleeding.method={method}", "bleed_points.0.rate_ml_s=0.2"])
+                           [f"texture_size={size}", "bleeding={}", f"bleeding.method={method}", "bleed_points.0.rate_ml_s=0.2", *changes])
 
 
 @pytest.mark.parametrize("method", ["particles", "height_field"])
 def test_the_method_in_use_gives_the_parameters_metrics_and_state(method):
-    scene = bleeding_scene(method)
+    scene = bleeding_scene(method, *(["bleeding.grid_divisor=1"] if method == "height_field" else []))  # display grid
     assert scene.bleeding.method == method
     offered = {key.split(".", 1)[1] for key in scene.parameters() if key.startswith("bleeding.")}
     assert offered == set(params.BLEEDING_METHODS[method])  # the sliders follow the method
@@ -36,6 +36,30 @@ def test_the_method_in_use_gives_the_parameters_metrics_and_state(method):
     assert thickness.shape == scene.surface.mask.shape and np.isfinite(thickness).all()
     assert thickness.max() == pytest.approx(metrics["max_thickness_mm"], rel=1e-5)
     assert scene.composite().shape == (64, 64, 3)
+
+
+def test_the_height_field_on_a_coarser_grid_is_shown_on_the_display_grid():
+    """bleeding.grid_divisor 4: blood runs on 32^2 texels under a 128^2 display. Bleed points (display texels) land on
+    the coarse texel under them, the displayed depth is the coarse depth read bilinearly (a convex combination: never
+    deeper than the deepest coarse texel, and it holds the same volume), and the metrics come from the coarse grid."""
+    scene = bleeding_scene("height_field", "bleeding.grid_divisor=4", size=128)
+    blood = scene.bleeding
+    assert blood.surface.size == 32 and blood.thickness.shape == (128, 128)
+    for _ in range(40):
+        scene.step()
+    scene.composite()
+    depth = blood.depth_mm()
+    shown = blood.thickness.to_numpy()
+    arrays = scene.state_arrays()
+    assert arrays["blood_thickness_mm"].shape == arrays["blood_stain_mm"].shape == (128, 128)
+    assert 0 < shown.max() <= depth.max() * (1 + 1e-6)
+    assert scene.metrics()["bleeding"]["max_thickness_mm"] == pytest.approx(depth.max(), rel=1e-6)
+    volume_shown = float((arrays["blood_thickness_mm"] * scene.surface.texel_area_mm2)[scene.surface.mask].sum())
+    volume = scene.metrics()["bleeding"]["volume_ml"] * 1000.0
+    print(f"coarse grid: {volume:.2f} mm^3 on the surface, {volume_shown:.2f} mm^3 read on the display grid")
+    assert volume_shown == pytest.approx(volume, rel=0.1)
+    point = scene.texel_near(scene.bleed_points[0].position_at(0.0))
+    assert arrays["blood_thickness_mm"][point] > 0.5 * shown.max()  # the blood is where the point bleeds
 
 
 def test_a_key_of_the_other_method_is_refused_with_the_method_named():

@@ -124,13 +124,13 @@ HEIGHT_FIELD = _table(
     ParamSpec("display_fade_s", "s", 0.2, 0.0, 5.0, "blood display keeps traces of moving blood for about this long"),
     ParamSpec("cfl", "", 0.4, 0.05, 0.9, "substeps are added so that the fastest wave crosses this fraction of the shortest pipe per substep"),
     ParamSpec("max_substeps", "", 64, 1, 512, "upper bound of the automatic substep count per step", integer=True),
-    ParamSpec("grid_divisor", "x", 4, 1, 8, "blood runs on a grid this many times coarser than the display texture "
+    ParamSpec("grid_divisor", "x", 8, 1, 8, "blood runs on a grid this many times coarser than the display texture "
               "(the display reads it bilinearly); fewer texels and fewer substeps", integer=True),
 )
 
-# Bleeding methods (scene key bleeding.method) and their parameter tables; the first is the default. The particles stay
-# the default until the height field runs on a coarser grid than the display: on a 512^2 texture its explicit gravity
-# waves need about 40 substeps per 0.01 s step (0.01x real time on the bleeding scene), the particles run at about 1x.
+# Bleeding methods (scene key bleeding.method) and their parameter tables; the first is what a scene that names no
+# method gets: the particles, so scene files written before the height field load as they did. The shipped scenes name
+# the height field (it pools, thins out and costs what its wetted area costs; README "Bleeding methods compared").
 BLEEDING_METHODS = {"particles": BLEEDING, "height_field": HEIGHT_FIELD}
 
 BLEED_POINT = _table(

@@ -31,7 +31,8 @@ SHARED: dict = {}             # what one test leaves for a later one
 def lab():
     from lab.app import LabApp
 
-    app = LabApp(REPO_ROOT / "scenes" / "hemostasis.yaml", "127.0.0.1", browser.free_port(), "cpu", overrides=("texture_size=128",))
+    app = LabApp(REPO_ROOT / "scenes" / "hemostasis.yaml", "127.0.0.1", browser.free_port(), "cpu",
+                 overrides=("texture_size=128", "bleeding.method=particles"))  # the particles' sliders (substeps, capacity)
     app.set_simple_lighting(True)  # software WebGL: the page answers clicks about twice as fast
     yield app
     app.close()
@@ -425,7 +426,8 @@ def test_scene_switch_keeps_the_quality_and_drops_the_scene_changes(lab, hostile
     run(lab, lambda: lab.scene.name == "liver_bleeding" and not lab.session.rebuild_pending, timeout_s=120)
     assert lab.session.builds == builds + 1, "the quality change and the switch should build once"
     assert lab.session.overrides == QUALITY["fast"] and lab.session.quality == "fast"
-    assert lab.scene.surface.mask.shape == (256, 256) and lab.scene.bleeding.params["substeps"] == 1
+    assert lab.scene.surface.mask.shape == (256, 256) and lab.scene.bleeding.method == "height_field"  # the scene file's
+    assert lab.scene.bleeding.params["cfl"] == QUALITY["fast"]["bleeding.cfl"]
     assert lab.scene.config["time_step_s"] == 0.01 and not lab.session.added_points
     assert [point.name for point in lab.scene.bleed_points] == ["vessel"]
     assert [tool.name for tool in lab.scene.instruments] == ["sucker"], "a bleeding scene gets a spare sucker"

@@ -54,8 +54,9 @@ def test_lone_particle_accelerates_at_g_sin_theta(width_mm, length_mm):
 
 
 def scene_config(changes: dict):
-    config = load_scene_config(REPO_ROOT / "scenes" / "bleeding.yaml", [f"{k}={json.dumps(v)}" for k, v in changes.items()])
-    return config
+    """The bleeding scene with the particle method (the method these tests are about) and these changes."""
+    changes = {"bleeding.method": "particles", **changes}
+    return load_scene_config(REPO_ROOT / "scenes" / "bleeding.yaml", [f"{k}={json.dumps(v)}" for k, v in changes.items()])
 
 
 def test_blood_area_is_independent_of_texture_size():
@@ -197,13 +198,15 @@ def test_same_scene_twice_gives_identical_state():
         assert np.array_equal(states[0][key], states[1][key]), key
 
 
-def test_identical_state_with_one_and_two_threads(tmp_path):
+@pytest.mark.parametrize("method", ["particles", "height_field"])
+def test_identical_state_with_one_and_two_threads(tmp_path, method):
     outputs = []
     for threads in ("1", "2"):
         out = tmp_path / f"threads{threads}"
         env = {**__import__("os").environ, "TISSUE_LAB_THREADS": threads}
         result = subprocess.run([sys.executable, "-m", "lab", "run", str(REPO_ROOT / "scenes" / "bleeding.yaml"), "--out", str(out),
-                                 "--duration", "0.5", "--set", "texture_size=128", "--arch", "cpu", "--quiet"],
+                                 "--duration", "0.5", "--set", "texture_size=128", "--set", f"bleeding.method={method}",
+                                 "--arch", "cpu", "--quiet"],
                                 capture_output=True, text=True, cwd=REPO_ROOT, env=env)
         assert result.returncode == 0, result.stderr
         outputs.append((out / "state.npz").read_bytes())

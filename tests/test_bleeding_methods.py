@@ -22,6 +22,8 @@ def test_the_method_in_use_gives_the_parameters_metrics_and_state(method):
     assert scene.bleeding.method == method
     offered = {key.split(".", 1)[1] for key in scene.parameters() if key.startswith("bleeding.")}
     assert offered == set(params.BLEEDING_METHODS[method])  # the sliders follow the method
+    rebuild = {key for key, parameter in scene.parameters().items() if key.startswith("bleeding.") and not parameter.live}
+    assert rebuild == ({"bleeding.capacity"} if method == "particles" else {"bleeding.grid_divisor"})
     for _ in range(40):
         scene.step()
     metrics = scene.metrics()["bleeding"]
@@ -63,11 +65,15 @@ def test_the_height_field_on_a_coarser_grid_is_shown_on_the_display_grid():
 
 
 def test_a_key_of_the_other_method_is_refused_with_the_method_named():
-    path = REPO_ROOT / "scenes" / "bleeding.yaml"  # its bleeding keys are the particles'
+    path = REPO_ROOT / "scenes" / "bleeding.yaml"
+    assert load_scene_config(path)["bleeding"]["method"] == "height_field"  # the shipped scenes use the height field
     with pytest.raises(ConfigError) as error:
-        load_scene_config(path, ["bleeding.method=height_field"])
+        load_scene_config(path, ["bleeding.method=height_field", "bleeding.particle_spacing_mm=0.5"])
     assert error.value.key == "bleeding.particle_spacing_mm" and "particles method" in error.value.message
+    with pytest.raises(ConfigError) as error:
+        load_scene_config(path, ["bleeding.method=particles", "bleeding.pinning_depth_mm=0.1"])
+    assert error.value.key == "bleeding.pinning_depth_mm" and "height_field method" in error.value.message
     with pytest.raises(ConfigError) as error:
         load_scene_config(path, ["bleeding.method=goo"])
     assert error.value.key == "bleeding.method"
-    assert load_scene_config(path)["bleeding"]["method"] == "particles"  # the default
+    assert load_scene_config(path, ["bleeding={}"])["bleeding"]["method"] == "particles"  # a scene that names none

@@ -429,7 +429,7 @@ def test_scene_switch_keeps_the_quality_and_drops_the_scene_changes(lab, hostile
     assert lab.scene.surface.mask.shape == (256, 256) and lab.scene.bleeding.method == "height_field"  # the scene file's
     assert lab.scene.bleeding.params["cfl"] == QUALITY["fast"]["bleeding.cfl"]
     assert lab.scene.config["time_step_s"] == 0.01 and not lab.session.added_points
-    assert [point.name for point in lab.scene.bleed_points] == ["vessel"]
+    assert [point.name for point in lab.scene.bleed_points] == ["vessel", "ooze"]  # the scene file's
     assert [tool.name for tool in lab.scene.instruments] == ["sucker"], "a bleeding scene gets a spare sucker"
 
 

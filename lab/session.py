@@ -38,9 +38,9 @@ SPEED_RANGE = (0.1, 4.0)  # x real time
 REST_DEPTH_MM = 0.2       # a tool rested on the tissue presses its tip this far in
 QUALITY = {  # name: scene overrides (texture texels; fluid substeps of either bleeding method, the one in use applies)
     "scene file": {},
-    "fast": {"texture_size": 256, "bleeding.substeps": 1, "bleeding.cfl": 0.6},
-    "balanced": {"texture_size": 512, "bleeding.substeps": 2, "bleeding.cfl": 0.4},
-    "accurate": {"texture_size": 1024, "bleeding.substeps": 4, "bleeding.cfl": 0.25},
+    "fast": {"texture_size": 256, "bleeding.substeps": 1, "bleeding.cfl": 0.8},
+    "balanced": {"texture_size": 512, "bleeding.substeps": 2, "bleeding.cfl": 0.6},
+    "accurate": {"texture_size": 1024, "bleeding.substeps": 4, "bleeding.cfl": 0.3},
 }
 SPARE_SUCTION = {"radius_mm": 4.0, "rate_ml_s": 0.2}
 SPARE_SUCKER_SHAPE = {"type": "capsule", "radius_mm": 1.5, "length_mm": 20.0, "width_mm": 1.0, "thickness_mm": 1.0, "file": None, "sdf_resolution": 8}

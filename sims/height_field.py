@@ -37,11 +37,14 @@ each pipe moves |u| W h (1 - clot) scale dt / UNIT units, stochastically rounded
 (kernel _transfer, integer atomics: exact and order independent). A texel keeps back one unit per leaving pipe
 (the rounding up), so its volume never goes below zero.
 Substeps (automatic, CFL): n = ceil(dt S / (cfl L_min)) with S the largest of |u| + sqrt(g_n h) + g_t min(dt, h^2/3nu)
-over the wet texels at the step's start (g_t the tangential gravity: the speed gravity can add in the step), at most
-max_substeps (the velocity bound keeps a capped step bounded; 0.05 s steps are fine).
+over the wet texels at the step's start (g_t the tangential gravity: the speed gravity can add in the step), and at
+least sqrt(g_n (h + h_s / n)) at a source adding h_s in the step; at most max_substeps (the velocity bound keeps a
+capped step bounded; 0.05 s steps are fine).
 
-Sinks and sources (per step): spawn_rate adds rate dt (1 ml = 1000 mm^3) as a uniform depth over the texels within
-radius_mm (3D) of the centre texel (at least the centre); suction removes from the texels within a tool's radius, in
+Sinks and sources (per step): spawn_rate puts rate dt (1 ml = 1000 mm^3) as a uniform depth over the texels within
+radius_mm (3D) of the centre texel (at least the centre), added in equal parts over the step's substeps (a bleed is
+a steady source: 1 ml/s into one 1 mm texel would otherwise drop a 10 mm column every 0.01 s, whose collapse
+needed twice the substeps); suction removes from the texels within a tool's radius, in
 proportion to their volume, at most rate dt; drying removes V (1 - exp(-dt / lifetime_s)) units per texel per
 step, stochastically rounded (exponential drying at rate h / lifetime_s; unbiased, and a thin film does vanish);
 clotting: a clot fraction c per texel grows as dc/dt = clotting_rate (1 - c) where the blood is at rest (pipe
@@ -163,6 +166,7 @@ class HeightFieldBleeding:
         self.mask.from_numpy(mask.astype(np.int32))
         self.volume = ti.field(ti.i32, shape)           # units of unit_mm3
         self.inflow = ti.field(ti.i32, shape)           # units received since the clot was last diluted
+        self.source = ti.field(ti.i32, shape)           # units spawned for the coming step, added over its substeps
         self.clot = ti.field(ti.f32, shape)
         self.stain = ti.field(ti.f32, shape)            # largest depth seen, mm
         self.thickness = ti.field(ti.f32, shape if display is None else display.fine_shape)  # displayed depth, mm
@@ -201,7 +205,7 @@ class HeightFieldBleeding:
         self.pipe_width.from_numpy(pipe_width.astype(np.float32))
         self.tiles = TileSchedule(mask, link_start, link_to, 1)
         self.counts = ti.field(ti.i32, (self.tiles.tiles, 4))
-        self.stats = ti.field(ti.f32, 2)                 # largest wave speed (mm/s), spare
+        self.stats = ti.field(ti.f32, 3)                 # largest wave speed (mm/s); at sources: g_n h, g_n h_source (mm^2/s^2)
         self.spawn_total = ti.field(ti.i32, 2)           # added, refused (capacity)
         self.tools = ti.Vector.field(4, ti.f32, MAX_SUCTION_TOOLS)  # x, y, z, radius (mm)
         self.tool_sum = ti.field(ti.f32, MAX_SUCTION_TOOLS)         # mm^3 within reach
@@ -228,7 +232,7 @@ class HeightFieldBleeding:
 
     def reset(self) -> None:
         """No blood, no stain, counters at zero."""
-        for name in ("volume", "inflow", "clot", "stain", "thickness", "give", "u", "link_u", "counts", "stats"):
+        for name in ("volume", "source", "inflow", "clot", "stain", "thickness", "give", "u", "link_u", "counts", "stats"):
             getattr(self, name).fill(0)
         self.tiles.hot.fill(-1)
         self.tiles.depth.fill(0)
@@ -295,16 +299,16 @@ class HeightFieldBleeding:
                         total += self.area[r, c]
                     else:
                         wanted = ti.cast(units_per_mm2 * self.area[r, c], ti.i32)
-                        room = ti.max(VOLUME_LEVELS - self.volume[r, c], 0)
+                        room = ti.max(VOLUME_LEVELS - self.volume[r, c] - self.source[r, c], 0)
                         put = ti.min(wanted, room)
-                        self.volume[r, c] += put
+                        self.source[r, c] += put
                         t = (r // TILE) * self.tiles.cols + c // TILE
                         self.counts[t, SPAWNED] += put
                         self.spawn_total[0] += put
                         self.spawn_total[1] += wanted - put
                         self.tiles.hot[t] = 0
-                        h = self.volume[r, c] * self.unit_per_area[r, c]
-                        ti.atomic_max(self.stats[0], ti.sqrt(self.gn[r, c] * h))
+                        ti.atomic_max(self.stats[1], self.gn[r, c] * self._depth(r, c))
+                        ti.atomic_max(self.stats[2], self.gn[r, c] * self.source[r, c] * self.unit_per_area[r, c])
         return total
 
     # --- the step -----------------------------------------------------------------------------
@@ -326,17 +330,19 @@ class HeightFieldBleeding:
         nu = kinematic_viscosity_mm2_s(p)
         if previous:
             self._scan(previous, dt_s, nu)
-        speed = max(float(self.stats[0]), self._pending_speed)
-        self.stats[0] = 0.0
+        speed, at_source, source = (float(v) for v in self.stats.to_numpy())
+        self.stats.fill(0.0)
+        n = self.substeps(dt_s, max(speed, self._pending_speed))
         self._pending_speed = 0.0
-        n = self.substeps(dt_s, speed)
+        if source > 0.0:  # the sources add 1/n of their step's depth per substep: waves as fast as sqrt(g_n (h + h_source / n))
+            n = max(n, self.substeps(dt_s, math.sqrt(at_source + source / n)))
         awake = self.tiles.plan(-(-n // TILE), 0, False)
         self.last_substeps = n if awake else 0
         if awake:
             sub = dt_s / n
             clot_keep = math.exp(-p["clotting_rate_1_s"] * sub)
-            for _ in range(n):
-                self._substep(awake, sub, nu, p["pinning_depth_mm"], p["rest_speed_mm_s"], clot_keep, self._substep_count)
+            for k in range(n):
+                self._substep(awake, sub, nu, p["pinning_depth_mm"], p["rest_speed_mm_s"], clot_keep, self._substep_count, k, n)
                 self._substep_count += 1
             tools = [tool for tool in suction if tool[2] > 0][:MAX_SUCTION_TOOLS]
             if tools:
@@ -405,12 +411,13 @@ class HeightFieldBleeding:
         return ti.min(ti.max(un, -bound), bound)
 
     @ti.kernel
-    def _substep(self, n: ti.i32, dt: ti.f32, nu: ti.f32, pin: ti.f32, rest_speed: ti.f32, clot_keep: ti.f32, seed: ti.i32):
-        """One substep of the n awake tiles, in one launch (its loops run one after the other): _momentum, _limit,
-        _transfer."""
+    def _substep(self, n: ti.i32, dt: ti.f32, nu: ti.f32, pin: ti.f32, rest_speed: ti.f32, clot_keep: ti.f32, seed: ti.i32,
+                 k: ti.i32, substeps: ti.i32):
+        """Substep k of `substeps` of the n awake tiles, in one launch (its loops run one after the other): _momentum,
+        _limit, _transfer."""
         self._momentum(n, dt, nu, pin)
         self._limit(n, dt, rest_speed, clot_keep)
-        self._transfer(n, seed)
+        self._transfer(n, seed, k, substeps)
 
     @ti.func
     def _momentum(self, n, dt, nu, pin):
@@ -537,12 +544,19 @@ class HeightFieldBleeding:
             self.tiles.hot[(rd // TILE) * self.tiles.cols + cd // TILE] = 0
 
     @ti.func
-    def _transfer(self, n, seed):
+    def _transfer(self, n, seed, k, substeps):
         """Integer units through every owned pipe, donor to receiver (atomics: exact, order independent); the pipe
-        velocity keeps the donor's limiter (what really flowed, Mei et al.), so it cannot grow where nothing moves."""
+        velocity keeps the donor's limiter (what really flowed, Mei et al.), so it cannot grow where nothing moves.
+        Substep k of `substeps` adds its share of the step's sources (the same integer share each, the remainder in
+        the first substeps: exact)."""
         for i, j in ti.ndrange(n, TILE * TILE):
             t, r, c, inside = self.tiles.texel(i, j)
             if inside and self.mask[r, c]:
+                pending = self.source[r, c]
+                if pending > 0:
+                    self.volume[r, c] += pending // substeps + ti.cast(k < pending % substeps, ti.i32)
+                    if k == substeps - 1:
+                        self.source[r, c] = 0
                 kind = self.kind[r, c]
                 f = r * self.width + c
                 for k in ti.static(range(8)):
@@ -657,7 +671,7 @@ class HeightFieldBleeding:
 
     def accounting(self) -> dict:
         """ml: spawned = on_surface + suctioned + left_surface + dried (exact in units of unit_mm3)."""
-        on_surface = int(self.volume.to_numpy().astype(np.int64).sum())
+        on_surface = int(self.volume.to_numpy().astype(np.int64).sum() + self.source.to_numpy().astype(np.int64).sum())
         scale = self.unit_mm3 / 1000.0
         result = {key: value * scale for key, value in self.totals.items()}
         result["on_surface"] = on_surface * scale

@@ -34,7 +34,7 @@ One substep, per pipe (kernel _momentum): u_new = advect(u) + dt dphi / L, then 
 Then per texel (kernel _limit) the outflow in the substep, sum of u W h (1 - clot) dt over the pipes leaving it, is
 scaled down to at most its volume (depth stays >= 0; the pipe keeps the scaled velocity, as in Mei et al.), and
 each pipe moves |u| W h (1 - clot) scale dt / UNIT units, stochastically rounded (unbiased), from donor to receiver
-(kernel _transfer, integer atomics: exact and order independent). A texel keeps back one unit per leaving pipe
+(kernel _transfer, integers gathered per texel: exact and order independent). A texel keeps back one unit per leaving pipe
 (the rounding up), so its volume never goes below zero.
 Substeps (automatic, CFL): n = ceil(dt S / (cfl L_min)) with S the largest of |u| + sqrt(g_n h) + g_t min(dt, h^2/3nu)
 over the wet texels at the step's start (g_t the tangential gravity: the speed gravity can add in the step), and at
@@ -206,7 +206,6 @@ class HeightFieldBleeding:
         self.tiles = TileSchedule(mask, link_start, link_to, 1)
         self.counts = ti.field(ti.i32, (self.tiles.tiles, 4))
         self.stats = ti.field(ti.f32, 3)                 # largest wave speed (mm/s); at sources: g_n h, g_n h_source (mm^2/s^2)
-        self.spawn_total = ti.field(ti.i32, 2)           # added, refused (capacity)
         self.tools = ti.Vector.field(4, ti.f32, MAX_SUCTION_TOOLS)  # x, y, z, radius (mm)
         self.tool_sum = ti.field(ti.f32, MAX_SUCTION_TOOLS)         # mm^3 within reach
         self.tool_fraction = ti.field(ti.f32, MAX_SUCTION_TOOLS)
@@ -276,40 +275,52 @@ class HeightFieldBleeding:
         disk = (row, col, float(radius_mm))
         area = self._disks.get(disk)
         if area is None:
-            area = float(self._disk(row, col, float(radius_mm), reach, 0.0, 0))
+            area = float(self._disk_area(row, col, float(radius_mm), reach))
             self._disks = {disk: area} if len(self._disks) > 64 else {**self._disks, disk: area}
-        self.spawn_total.fill(0)
-        self._disk(row, col, float(radius_mm), reach, whole / max(area, 1e-30), 1)
-        added, refused = (int(v) for v in self.spawn_total.to_numpy())
+        added, refused = (int(v) for v in self._disk_add(row, col, float(radius_mm), reach, whole / max(area, 1e-30)))
         self.totals["spawned"] += added
         self.totals["dropped_too_deep"] += refused
         self._spawn_budget[key] = budget - added - refused  # the rounding short of `whole` carries over
         return added
 
+    @ti.func
+    def _in_disk(self, row, col, dr, dc, radius):
+        """Texel (row + dr, col + dc) is a surface texel within radius (mm, 3D) of (row, col), or that texel itself."""
+        r, c = row + dr, col + dc
+        inside = False
+        if 0 <= r < self.height and 0 <= c < self.width:
+            if self.mask[r, c]:
+                inside = (dr == 0 and dc == 0) or (self.position[r, c] - self.position[row, col]).norm() <= radius
+        return inside
+
     @ti.kernel
-    def _disk(self, row: ti.i32, col: ti.i32, radius: ti.f32, reach: ti.i32, units_per_mm2: ti.f32, add: ti.i32) -> ti.f32:
-        """add = 0: the area (mm^2) of the disk's texels; add = 1: put units_per_mm2 * area into each."""
+    def _disk_area(self, row: ti.i32, col: ti.i32, radius: ti.f32, reach: ti.i32) -> ti.f32:
+        """The area (mm^2) of the disk's texels."""
         total = 0.0
-        centre = self.position[row, col]
         for dr, dc in ti.ndrange((-reach, reach + 1), (-reach, reach + 1)):
-            r, c = row + dr, col + dc
-            if 0 <= r < self.height and 0 <= c < self.width:
-                if self.mask[r, c] and ((dr == 0 and dc == 0) or (self.position[r, c] - centre).norm() <= radius):
-                    if add == 0:
-                        total += self.area[r, c]
-                    else:
-                        wanted = ti.cast(units_per_mm2 * self.area[r, c], ti.i32)
-                        room = ti.max(VOLUME_LEVELS - self.volume[r, c] - self.source[r, c], 0)
-                        put = ti.min(wanted, room)
-                        self.source[r, c] += put
-                        t = (r // TILE) * self.tiles.cols + c // TILE
-                        self.counts[t, SPAWNED] += put
-                        self.spawn_total[0] += put
-                        self.spawn_total[1] += wanted - put
-                        self.tiles.hot[t] = 0
-                        ti.atomic_max(self.stats[1], self.gn[r, c] * self._depth(r, c))
-                        ti.atomic_max(self.stats[2], self.gn[r, c] * self.source[r, c] * self.unit_per_area[r, c])
+            if self._in_disk(row, col, dr, dc, radius):
+                total += self.area[row + dr, col + dc]
         return total
+
+    @ti.kernel
+    def _disk_add(self, row: ti.i32, col: ti.i32, radius: ti.f32, reach: ti.i32, units_per_mm2: ti.f32) -> ti.types.vector(2, ti.i32):
+        """Put units_per_mm2 * area into each texel of the disk as the coming step's source, up to its capacity:
+        (units added, units refused), returned (no separate read back)."""
+        added, refused = 0, 0
+        for dr, dc in ti.ndrange((-reach, reach + 1), (-reach, reach + 1)):
+            if self._in_disk(row, col, dr, dc, radius):
+                r, c = row + dr, col + dc
+                wanted = ti.cast(units_per_mm2 * self.area[r, c], ti.i32)
+                put = ti.min(wanted, ti.max(VOLUME_LEVELS - self.volume[r, c] - self.source[r, c], 0))
+                self.source[r, c] += put
+                t = (r // TILE) * self.tiles.cols + c // TILE
+                self.counts[t, SPAWNED] += put
+                added += put
+                refused += wanted - put
+                self.tiles.hot[t] = 0
+                ti.atomic_max(self.stats[1], self.gn[r, c] * self._depth(r, c))
+                ti.atomic_max(self.stats[2], self.gn[r, c] * self.source[r, c] * self.unit_per_area[r, c])
+        return ti.Vector([added, refused])
 
     # --- the step -----------------------------------------------------------------------------
     def substeps(self, dt_s: float, speed_mm_s: float) -> int:
@@ -330,8 +341,7 @@ class HeightFieldBleeding:
         nu = kinematic_viscosity_mm2_s(p)
         if previous:
             self._scan(previous, dt_s, nu)
-        speed, at_source, source = (float(v) for v in self.stats.to_numpy())
-        self.stats.fill(0.0)
+        speed, at_source, source = (float(v) for v in self._take_stats())
         n = self.substeps(dt_s, max(speed, self._pending_speed))
         self._pending_speed = 0.0
         if source > 0.0:  # the sources add 1/n of their step's depth per substep: waves as fast as sqrt(g_n (h + h_source / n))
@@ -396,6 +406,13 @@ class HeightFieldBleeding:
                     if nu > 0.0:
                         reach = ti.min(dt, h * h / (3.0 * nu))
                     ti.atomic_max(self.stats[0], umax + ti.sqrt(self.gn[r, c] * h) + self.gt[r, c] * reach)
+
+    @ti.kernel
+    def _take_stats(self) -> ti.types.vector(3, ti.f32):
+        """The stats, returned and zeroed in one launch."""
+        taken = ti.Vector([self.stats[0], self.stats[1], self.stats[2]])
+        self.stats[0], self.stats[1], self.stats[2] = 0.0, 0.0, 0.0
+        return taken
 
     @ti.func
     def _finish(self, un, length, h_own, h_other, dt, nu, pin, outfall):
@@ -473,18 +490,7 @@ class HeightFieldBleeding:
 
     @ti.func
     def _limit(self, n, dt, rest_speed, clot_keep):
-        """New velocities into buffer 0; per texel the outflow scale (give), clot dilution and growth."""
-        for i, j in ti.ndrange(n, TILE * TILE):
-            t, r, c, inside = self.tiles.texel(i, j)
-            if inside and self.mask[r, c]:
-                kind = self.kind[r, c]
-                for k in ti.static(range(8)):
-                    if kind[k] == OWNED or kind[k] == OUTFALL:
-                        self.u[0, r, c][k] = self.u[1, r, c][k]
-                f = r * self.width + c
-                for m in range(self.link_start[f], self.link_start[f + 1]):
-                    if f < self.link_to[m]:
-                        self.link_u[0, m] = self.link_u[1, m]
+        """Per texel from the new velocities (buffer 1): the outflow scale (give), clot dilution and growth."""
         for i, j in ti.ndrange(n, TILE * TILE):
             t, r, c, inside = self.tiles.texel(i, j)
             if inside and self.mask[r, c]:
@@ -536,59 +542,84 @@ class HeightFieldBleeding:
         return ti.cast(ti.floor(x + hash01(pipe, seed)), ti.i32)
 
     @ti.func
-    def _move(self, amount, rs, cs, rd, cd):
-        if amount > 0:
-            self.volume[rs, cs] -= amount
-            self.volume[rd, cd] += amount
-            self.inflow[rd, cd] += amount
-            self.tiles.hot[(rd // TILE) * self.tiles.cols + cd // TILE] = 0
+    def _awake(self, r, c):
+        return self.tiles.depth[(r // TILE) * self.tiles.cols + c // TILE] > 0
+
+    @ti.func
+    def _flow(self, u, w, owner_r, owner_c, other_r, other_c, pipe, seed):
+        """Units through a pipe in this substep, positive from its owner to the other end: the same expression on
+        both ends (each texel sums its own pipes: no atomics, exact)."""
+        amount = 0
+        if u > 0.0:
+            amount = self._units(u * w * self.give[owner_r, owner_c], pipe, seed)
+        elif u < 0.0:
+            amount = -self._units(-u * w * self.give[other_r, other_c], pipe, seed)
+        return amount
 
     @ti.func
     def _transfer(self, n, seed, k, substeps):
-        """Integer units through every owned pipe, donor to receiver (atomics: exact, order independent); the pipe
-        velocity keeps the donor's limiter (what really flowed, Mei et al.), so it cannot grow where nothing moves.
-        Substep k of `substeps` adds its share of the step's sources (the same integer share each, the remainder in
-        the first substeps: exact)."""
+        """Integer units through every pipe between awake texels, donor to receiver, each texel adding up its own
+        pipes (gathered: the owner and the other end compute the same units, so exact and order independent without
+        atomics); the owner keeps in buffer 0 its pipe's velocity times the donor's limiter (what really flowed, Mei
+        et al.), so it cannot grow where nothing moves. Substep k of `substeps` adds its share of the step's sources
+        (the same integer share each, the remainder in the first substeps: exact)."""
         for i, j in ti.ndrange(n, TILE * TILE):
             t, r, c, inside = self.tiles.texel(i, j)
             if inside and self.mask[r, c]:
-                pending = self.source[r, c]
-                if pending > 0:
-                    self.volume[r, c] += pending // substeps + ti.cast(k < pending % substeps, ti.i32)
-                    if k == substeps - 1:
-                        self.source[r, c] = 0
                 kind = self.kind[r, c]
                 f = r * self.width + c
-                for k in ti.static(range(8)):
-                    dr, dc = ti.static(NEIGHBOURS[k])
-                    u = self.u[0, r, c][k]
-                    w = self.pipe_width[r, c][k]
-                    if kind[k] == OWNED:
-                        if u > 0.0:
-                            self._move(self._units(u * w * self.give[r, c], f * 8 + k, seed), r, c, r + dr, c + dc)
-                            self.u[0, r, c][k] = u * self.scale[r, c]
-                        elif u < 0.0:
-                            self._move(self._units(-u * w * self.give[r + dr, c + dc], f * 8 + k, seed), r + dr, c + dc, r, c)
-                            self.u[0, r, c][k] = u * self.scale[r + dr, c + dc]
-                    elif kind[k] == OUTFALL and u > 0.0:
-                        amount = self._units(u * w * self.give[r, c], f * 8 + k, seed)
-                        self.u[0, r, c][k] = u * self.scale[r, c]
-                        if amount > 0:
-                            self.volume[r, c] -= amount
-                            self.counts[t, LEFT] += amount
-                f = r * self.width + c
+                change, received = 0, 0
+                pending = self.source[r, c]
+                if pending > 0:
+                    change += pending // substeps + ti.cast(k < pending % substeps, ti.i32)
+                    if k == substeps - 1:
+                        self.source[r, c] = 0
+                for k8 in ti.static(range(8)):
+                    dr, dc = ti.static(NEIGHBOURS[k8])
+                    rn, cn = r + dr, c + dc
+                    if kind[k8] == OWNED:
+                        u = self.u[1, r, c][k8]
+                        flow = 0
+                        if self._awake(rn, cn):
+                            flow = self._flow(u, self.pipe_width[r, c][k8], r, c, rn, cn, f * 8 + k8, seed)
+                        change -= flow
+                        received += ti.max(-flow, 0)
+                        self.u[0, r, c][k8] = u * (self.scale[r, c] if u > 0.0 else self.scale[rn, cn])
+                    elif kind[k8] == BACKWARD:
+                        if self._awake(rn, cn):
+                            g = rn * self.width + cn
+                            flow = self._flow(self.u[1, rn, cn][k8 ^ 1], self.pipe_width[rn, cn][k8 ^ 1], rn, cn, r, c,
+                                              g * 8 + (k8 ^ 1), seed)
+                            change += flow
+                            received += ti.max(flow, 0)
+                    elif kind[k8] == OUTFALL:
+                        u = self.u[1, r, c][k8]
+                        left = self._flow(ti.max(u, 0.0), self.pipe_width[r, c][k8], r, c, r, c, f * 8 + k8, seed)
+                        self.u[0, r, c][k8] = u * self.scale[r, c]
+                        if left > 0:
+                            change -= left
+                            self.counts[t, LEFT] += left
                 for m in range(self.link_start[f], self.link_start[f + 1]):
                     g = self.link_to[m]
-                    if f < g:
-                        rg, cg = g // self.width, g % self.width
-                        u = self.link_u[0, m]
-                        w = self.link_width[m]
-                        if u > 0.0:
-                            self._move(self._units(u * w * self.give[r, c], -1 - m, seed), r, c, rg, cg)
-                            self.link_u[0, m] = u * self.scale[r, c]
-                        elif u < 0.0:
-                            self._move(self._units(-u * w * self.give[rg, cg], -1 - m, seed), rg, cg, r, c)
-                            self.link_u[0, m] = u * self.scale[rg, cg]
+                    rg, cg = g // self.width, g % self.width
+                    if f < g:  # owned here
+                        u = self.link_u[1, m]
+                        flow = 0
+                        if self._awake(rg, cg):
+                            flow = self._flow(u, self.link_width[m], r, c, rg, cg, -1 - m, seed)
+                        change -= flow
+                        received += ti.max(-flow, 0)
+                        self.link_u[0, m] = u * (self.scale[r, c] if u > 0.0 else self.scale[rg, cg])
+                    elif self._awake(rg, cg):
+                        owned = self.link_rev[m]
+                        flow = self._flow(self.link_u[1, owned], self.link_width[owned], rg, cg, r, c, -1 - owned, seed)
+                        change += flow
+                        received += ti.max(flow, 0)
+                if change != 0:
+                    self.volume[r, c] = self.volume[r, c] + change
+                if received > 0:
+                    self.inflow[r, c] = self.inflow[r, c] + received
+                    self.tiles.hot[t] = 0
 
     @ti.func
     def _tool_of(self, r, c, tools):

@@ -95,6 +95,11 @@ def test_quick_bench_writes_finite_numbers_and_plots_for_every_section(tmp_path)
     assert scenes["default.yaml"]["ms_per_simulated_s"]["bleeding"] == 0.0
     assert scenes["hemostasis.yaml"]["ms_per_simulated_s"]["cautery"] > 0.0 and scenes["hemostasis.yaml"]["ms_per_simulated_s"]["bleeding"] > 0.0
     assert finite_numbers(results)
+    methods = {(row["case"], row["method"]): row for row in results["bleeding_methods"]["cases"]}
+    hollow = {m["quantity"]: m["error_rel"] for m in methods[("hollow", "height_field")]["measures"]}
+    assert all(abs(error) < 0.05 for error in hollow.values()), "the height field pools as a level pool"
+    assert abs(methods[("incline", "height_field")]["measures"][0]["error_rel"]) < 0.05, "Nusselt's film"
+    assert all(point["ms_per_simulated_s"] > 0 for run in results["bleeding_methods"]["growth"] for point in run["points"])
     sphere = results["heat"]["sphere"]
     assert {row["scheme"] for row in sphere} == {"explicit", "implicit"} and all(row["seam_links"] > 0 for row in sphere)
     assert all(abs(row["rate_error_rel"]) < 0.02 for row in sphere), "heat across UV seams: the sphere's l = 1 mode"

@@ -38,7 +38,7 @@ SPEED_RANGE = (0.1, 4.0)  # x real time
 REST_DEPTH_MM = 0.2       # a tool rested on the tissue presses its tip this far in
 QUALITY = {  # name: scene overrides (texture texels; fluid substeps of either bleeding method, the one in use applies)
     "scene file": {},
-    "fast": {"texture_size": 256, "bleeding.substeps": 1, "bleeding.cfl": 0.8},
+    "fast": {"texture_size": 256, "bleeding.substeps": 1, "bleeding.cfl": 0.65},
     "balanced": {"texture_size": 512, "bleeding.substeps": 2, "bleeding.cfl": 0.6},
     "accurate": {"texture_size": 1024, "bleeding.substeps": 4, "bleeding.cfl": 0.3},
 }

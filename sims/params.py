@@ -122,7 +122,8 @@ HEIGHT_FIELD = _table(
     ParamSpec("rest_speed_mm_s", "mm/s", 1.0, 0.0, 50.0, "blood slower than this counts as at rest for clotting"),
     ParamSpec("lifetime_s", "s", 600.0, 0.1, 36000.0, "blood dries exponentially with this time constant"),
     ParamSpec("display_fade_s", "s", 0.2, 0.0, 5.0, "blood display keeps traces of moving blood for about this long"),
-    ParamSpec("cfl", "", 0.6, 0.05, 0.9, "substeps are added so that the fastest wave crosses this fraction of the shortest pipe per substep"),
+    ParamSpec("cfl", "", 0.6, 0.05, 0.65, "substeps are added so that the fastest wave crosses this fraction of the shortest pipe per "
+              "substep (explicit gravity waves: grid-scale noise grows above about 0.73)"),
     ParamSpec("max_substeps", "", 64, 1, 512, "upper bound of the automatic substep count per step", integer=True),
     ParamSpec("grid_divisor", "x", 8, 1, 8, "blood runs on a grid this many times coarser than the display texture "
               "(the display reads it bilinearly); fewer texels and fewer substeps", integer=True),

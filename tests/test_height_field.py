@@ -178,10 +178,10 @@ def test_dam_break_follows_ritter(cfl):
     print(f"Ritter at t = {t:.3f} s: front {front:.1f} mm (exact {front_exact:.1f}, error {(front - front_exact) / front_exact:+.1%}), "
           f"mean |h - h_Ritter| / h0 = {profile_error:.3f} over the wave, depth at the dam {at_dam:.3f} (exact {4 * h0 / 9:.3f}), "
           f"substeps/step {blood.last_substeps}")
-    # measured at cfl 0.4 (2 or 3 substeps): front 23.5 mm against 29.7 (-21 %, the same at 0.5 mm texels: the
-    # scheme's first-order front, not diffusion), mean depth error 0.022 h0, 0.459 at the dam; at 0.6: -24 %, 0.024 h0,
-    # 0.462; at 0.9 (1 substep, above the stable range: see the deep pool below): -31 %, 0.032 h0, 0.454. The
-    # non-conservative advection gave 11.5 mm
+    # measured at the default cfl 0.6 (substeps from the larger of flow and wave speed): front 21.5 mm against 29.7
+    # (-27.6 %), mean depth error 0.029 h0, 0.453 at the dam; at the slider's 0.65 (1 substep): -31 %, 0.032 h0. With
+    # the sum of flow and wave speed: -21 % at cfl 0.4 (the same at 0.5 mm texels: the scheme's first-order front, not
+    # diffusion), -24 % at 0.6. The non-conservative advection gave 11.5 mm
     assert blood.depth_mm().max() <= h0 * (1.0 + 1e-4)
     assert_exact(blood)
     if cfl == CFL.max:

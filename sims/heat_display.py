@@ -35,13 +35,14 @@ class HeatDisplay:
         """The heat-grid texel under a display texel."""
         return tuple(texel_rc) if self.resampler is None else self.resampler.coarse_texel(texel_rc)
 
-    def arrays(self) -> dict[str, np.ndarray]:
-        """state.npz arrays at display resolution: (H, W) surface maps, (L, H, W) layers, (L,) layer depths."""
+    def arrays(self, display_grid: bool = True) -> dict[str, np.ndarray]:
+        """state.npz arrays at display resolution (display_grid False: on the heat grid): (H, W) surface maps,
+        (L, H, W) layers, (L,) layer depths."""
         cautery = self.cautery
         arrays = {"temperature_c": cautery.temperature_c(), "damage_omega": cautery.damage_omega(), "char": cautery.char_level(),
                   "coagulation_depth_mm": cautery.coagulation_depth_mm(), "temperature_depth_c": cautery.temperature_depth_c(),
                   "damage_omega_depth": cautery.damage_omega_depth()}
-        if self.resampler is not None:
+        if self.resampler is not None and display_grid:
             arrays = {name: self.resampler.array(values) for name, values in arrays.items()}
         arrays["layer_depth_mm"] = cautery.layer_depth_mm.astype(np.float32)
         return arrays

@@ -698,12 +698,14 @@ class HeightFieldBleeding:
         links = np.abs(self.link_u.to_numpy()[0][: 2 * self.seam_links])
         return np.concatenate([owned, links])
 
-    def state_arrays(self) -> dict:
+    def state_arrays(self, display_grid: bool = True) -> dict:
         """blood_thickness_mm (H, W) (DESIGN: state.npz with the height field), the stain and the clot fraction, on
-        the display grid."""
+        the display grid (display_grid False: on the blood's own grid)."""
         arrays = {"blood_thickness_mm": self.depth_mm().astype(np.float32), "blood_stain_mm": self.stain.to_numpy(),
                   "blood_clot": self.clot.to_numpy()}
-        return arrays if self.display is None else {name: self.display.array(values) for name, values in arrays.items()}
+        if self.display is None or not display_grid:
+            return arrays
+        return {name: self.display.array(values) for name, values in arrays.items()}
 
     def accounting(self) -> dict:
         """ml: spawned = on_surface + suctioned + left_surface + dried (exact in units of unit_mm3)."""

@@ -30,8 +30,9 @@ class BleedingMethod(Protocol):
     def metrics(self) -> dict:
         """method, blood_area_mm2, max_thickness_mm, volume_ml and spawned_ml = on_surface_ml + suctioned_ml +
         left_surface_ml + dried_ml, then the method's own keys."""
-    def state_arrays(self) -> dict[str, np.ndarray]:
-        """blood_thickness_mm (H, W), then the method's own arrays."""
+    def state_arrays(self, display_grid: bool = True) -> dict[str, np.ndarray]:
+        """blood_thickness_mm (H, W), then the method's own arrays; display_grid False: on the method's own grid
+        where it has one (not resampled)."""
     def take_warning(self) -> str | None:
         """Once: a reason blood was lost, else None."""
 

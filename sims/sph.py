@@ -612,8 +612,9 @@ class Bleeding:
                 "suctioned_ml": counts["suctioned"] * ml, "left_surface_ml": counts["left_surface"] * ml,
                 "dried_ml": counts["expired"] * ml, **counts, "capacity": self.capacity, "particle_volume_ml": ml}
 
-    def state_arrays(self) -> dict:
-        """state.npz: blood_thickness_mm (H, W) from the splat of this step's particles, and particle_arrays()."""
+    def state_arrays(self, display_grid: bool = True) -> dict:
+        """state.npz: blood_thickness_mm (H, W) from the splat of this step's particles, and particle_arrays(); the
+        particles have no grid of their own (display_grid is part of the method interface)."""
         return {"blood_thickness_mm": self.blood_thickness_mm(), **self.particle_arrays()}
 
     def blood_thickness_mm(self) -> np.ndarray:

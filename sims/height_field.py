@@ -77,7 +77,7 @@ from sims.seams import seam_links
 from sims.tiles import TILE, TileSchedule
 
 KEYS = ("spawned", "suctioned", "left_surface", "dried", "dropped_too_deep")
-SPAWNED, SUCTIONED, LEFT, DRIED = range(4)  # columns of the per-tile counters
+SUCTIONED, LEFT, DRIED = range(3)  # columns of the per-tile counters of a step (zeroed by its first substep)
 NONE, OWNED, BACKWARD, OUTFALL = range(4)   # pipe kinds per texel and direction
 CAPACITY_MM = 64.0              # depth a texel of the largest area holds at VOLUME_LEVELS units
 VOLUME_LEVELS = 1 << 24         # units per texel at most from sources (per-tile i32 counters stay below 2^30 per step)
@@ -209,7 +209,7 @@ class HeightFieldBleeding:
         self.length.from_numpy(length.astype(np.float32))
         self.pipe_width.from_numpy(pipe_width.astype(np.float32))
         self.tiles = TileSchedule(mask, link_start, link_to, 1)
-        self.counts = ti.field(ti.i32, (self.tiles.tiles, 4))
+        self.counts = ti.field(ti.i32, (self.tiles.tiles, 3))
         self.stats = ti.field(ti.f32, 3)                 # largest wave speed (mm/s); at sources: g_n h, g_n h_source (mm^2/s^2)
         self.tools = ti.Vector.field(4, ti.f32, MAX_SUCTION_TOOLS)  # x, y, z, radius (mm)
         self.tool_sum = ti.field(ti.f32, MAX_SUCTION_TOOLS)         # mm^3 within reach
@@ -319,7 +319,6 @@ class HeightFieldBleeding:
                 put = ti.min(wanted, ti.max(VOLUME_LEVELS - self.volume[r, c] - self.source[r, c], 0))
                 self.source[r, c] += put
                 t = (r // TILE) * self.tiles.cols + c // TILE
-                self.counts[t, SPAWNED] += put
                 added += put
                 refused += wanted - put
                 self.tiles.hot[t] = 0
@@ -344,8 +343,6 @@ class HeightFieldBleeding:
             return
         self._touched = False
         nu = kinematic_viscosity_mm2_s(p)
-        if previous:
-            self._scan(previous, dt_s, nu)
         speed, at_source, source = (float(v) for v in self._take_stats())
         n = self.substeps(dt_s, max(speed, self._pending_speed))
         self._pending_speed = 0.0
@@ -373,14 +370,11 @@ class HeightFieldBleeding:
                     if within[index] > 0:
                         fraction[index] = min(1.0, rate * dt_s * 1000.0 / float(within[index]))
                 self.tool_fraction.from_numpy(fraction)
-            self._sinks(awake, len(tools), 1.0 - math.exp(-dt_s / p["lifetime_s"]), self.step_index)
+            self._sinks(awake, len(tools), 1.0 - math.exp(-dt_s / p["lifetime_s"]), self.step_index, dt_s, nu)
             counts = self.counts.to_numpy().astype(np.int64).sum(axis=0)
-            self.counts.fill(0)
             self.totals["suctioned"] += int(counts[SUCTIONED])
             self.totals["left_surface"] += int(counts[LEFT])
             self.totals["dried"] += int(counts[DRIED])
-        else:
-            self.counts.fill(0)
         self.step_index += 1
 
     @ti.func
@@ -390,27 +384,6 @@ class HeightFieldBleeding:
     @ti.func
     def _inside(self, r, c):
         return 0 <= r < self.height and 0 <= c < self.width
-
-    @ti.kernel
-    def _scan(self, n: ti.i32, dt: ti.f32, nu: ti.f32):
-        """Tiles holding blood or flow are hot; stain; the largest wave and flow speed over wet texels."""
-        for i, j in ti.ndrange(n, TILE * TILE):
-            t, r, c, inside = self.tiles.texel(i, j)
-            if inside and self.mask[r, c]:
-                h = self._depth(r, c)
-                umax = 0.0
-                for k in ti.static(range(8)):
-                    umax = ti.max(umax, ti.abs(self.u[0, r, c][k]))
-                f = r * self.width + c
-                for m in range(self.link_start[f], self.link_start[f + 1]):
-                    umax = ti.max(umax, ti.abs(self.link_u[0, m]))
-                if h > 0.0 or umax > 0.0:
-                    self.tiles.hot[t] = 0
-                    self.stain[r, c] = ti.max(self.stain[r, c], h)
-                    reach = dt
-                    if nu > 0.0:
-                        reach = ti.min(dt, h * h / (3.0 * nu))
-                    ti.atomic_max(self.stats[0], ti.max(umax + self.gt[r, c] * reach, ti.sqrt(self.gn[r, c] * h)))
 
     @ti.kernel
     def _take_stats(self) -> ti.types.vector(3, ti.f32):
@@ -435,8 +408,11 @@ class HeightFieldBleeding:
     @ti.kernel
     def _substep(self, n: ti.i32, dt: ti.f32, nu: ti.f32, pin: ti.f32, rest_speed: ti.f32, clot_keep: ti.f32, seed: ti.i32,
                  k: ti.i32, substeps: ti.i32):
-        """Substep k of `substeps` of the n awake tiles, in one launch (its loops run one after the other): _momentum,
-        _limit, _transfer."""
+        """Substep k of `substeps` of the n awake tiles, in one launch (its loops run one after the other): the step's
+        counters zeroed (k = 0), _momentum, _limit, _transfer."""
+        for t, q in self.counts:
+            if k == 0:
+                self.counts[t, q] = 0
         self._momentum(n, dt, nu, pin)
         self._limit(n, dt, rest_speed, clot_keep)
         self._transfer(n, seed, k, substeps)
@@ -646,23 +622,40 @@ class HeightFieldBleeding:
                     self.tool_sum[k] += self.volume[r, c] * self.unit_per_area[r, c] * self.area[r, c]
 
     @ti.kernel
-    def _sinks(self, n: ti.i32, tools: ti.i32, dry_fraction: ti.f32, step: ti.i32):
-        """Suction (fraction of the volume within a tool's reach), then drying."""
+    def _sinks(self, n: ti.i32, tools: ti.i32, dry_fraction: ti.f32, step: ti.i32, dt: ti.f32, nu: ti.f32):
+        """Suction (fraction of the volume within a tool's reach), then drying; then for the next step: tiles holding
+        blood or flow are hot, the stain, and the largest speed that sets the substeps (stats[0]): over the wet
+        texels, the larger of the flow's |u| + g_t min(dt, h^2 / 3 nu) and the waves' sqrt(g_n h)."""
         for i, j in ti.ndrange(n, TILE * TILE):
             t, r, c, inside = self.tiles.texel(i, j)
-            if inside and self.mask[r, c] and self.volume[r, c] > 0:
+            if inside and self.mask[r, c]:
                 volume = self.volume[r, c]
-                if tools > 0:
-                    k = self._tool_of(r, c, tools)
-                    if k >= 0:
-                        taken = ti.min(volume, ti.cast(ti.cast(volume, ti.f32) * self.tool_fraction[k], ti.i32))
-                        volume -= taken
-                        self.counts[t, SUCTIONED] += taken
-                dither = hash01(r * self.width + c, step)  # stochastic rounding: unbiased, and a film does vanish
-                dried = ti.min(volume, ti.cast(ti.floor(ti.cast(volume, ti.f32) * dry_fraction + dither), ti.i32))
-                volume -= dried
-                self.counts[t, DRIED] += dried
-                self.volume[r, c] = volume
+                if volume > 0:
+                    if tools > 0:
+                        k = self._tool_of(r, c, tools)
+                        if k >= 0:
+                            taken = ti.min(volume, ti.cast(ti.cast(volume, ti.f32) * self.tool_fraction[k], ti.i32))
+                            volume -= taken
+                            self.counts[t, SUCTIONED] += taken
+                    dither = hash01(r * self.width + c, step)  # stochastic rounding: unbiased, and a film does vanish
+                    dried = ti.min(volume, ti.cast(ti.floor(ti.cast(volume, ti.f32) * dry_fraction + dither), ti.i32))
+                    volume -= dried
+                    self.counts[t, DRIED] += dried
+                    self.volume[r, c] = volume
+                h = self._depth(r, c)
+                umax = 0.0
+                for k in ti.static(range(8)):
+                    umax = ti.max(umax, ti.abs(self.u[0, r, c][k]))
+                f = r * self.width + c
+                for m in range(self.link_start[f], self.link_start[f + 1]):
+                    umax = ti.max(umax, ti.abs(self.link_u[0, m]))
+                if h > 0.0 or umax > 0.0:
+                    self.tiles.hot[t] = 0
+                    self.stain[r, c] = ti.max(self.stain[r, c], h)
+                    reach = dt
+                    if nu > 0.0:
+                        reach = ti.min(dt, h * h / (3.0 * nu))
+                    ti.atomic_max(self.stats[0], ti.max(umax + self.gt[r, c] * reach, ti.sqrt(self.gn[r, c] * h)))
 
     # --- outputs ------------------------------------------------------------------------------
     def update_display(self, fade: float) -> None:

@@ -4,7 +4,7 @@
 `explicit` (automatic substeps below the stability limit) or `implicit` (one backward-Euler step per
 time step, conjugate gradient), e.g. `cautery: {scheme: implicit}` or `--set cautery.scheme=implicit`.
 `cautery.bottom` (optional, default body): below the deepest heat layer the tissue is held at body temperature
-(`body`) or insulated (`insulated`). `bleeding.method` (optional, default particles) picks the bleeding method
+(`body`) or insulated (`insulated`). `bleeding.method` (optional, default height_field) picks the bleeding method
 (`particles` or `height_field`, sims.models); the other `bleeding` keys are that method's parameters.
 Keys in sims.params.RETIRED load with a note in config["notes"] and are ignored.
 """
@@ -214,7 +214,8 @@ class MethodRecord(Record):
         for name in value:
             other = next((other for other, keys in self.methods.items() if name in keys), None)
             if name != "method" and name not in fields and other is not None:
-                ctx.fail(_join(key, name), f"a key of the {other} method; this scene's {_join(key, 'method')} is {method}")
+                named = "" if value.get("method") else f" (the default when none is named: add {_join(key, 'method')}: {other})"
+                ctx.fail(_join(key, name), f"a key of the {other} method; this scene's {_join(key, 'method')} is {method}{named}")
         clean = Record(fields).validate({name: item for name, item in value.items() if name != "method"}, key, ctx)
         return {"method": method, **clean}
 

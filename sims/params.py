@@ -130,9 +130,10 @@ HEIGHT_FIELD = _table(
 )
 
 # Bleeding methods (scene key bleeding.method) and their parameter tables; the first is what a scene that names no
-# method gets: the particles, so scene files written before the height field load as they did. The shipped scenes name
-# the height field (it pools, thins out and costs what its wetted area costs; README "Bleeding methods compared").
-BLEEDING_METHODS = {"particles": BLEEDING, "height_field": HEIGHT_FIELD}
+# method gets: the height field, the bench's choice (it pools and thins out, within 2 % of Nusselt's film and the level
+# pool, and costs what its wetted area costs; README "Bleeding methods compared"). A scene written for the particles
+# without naming them is refused at its first particle key, with the method named.
+BLEEDING_METHODS = {"height_field": HEIGHT_FIELD, "particles": BLEEDING}
 
 BLEED_POINT = _table(
     ParamSpec("rate_ml_s", "ml/s", 0.02, 0.0, 10.0, "bleeding rate before coagulation at the point"),

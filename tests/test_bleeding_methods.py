@@ -76,4 +76,7 @@ def test_a_key_of_the_other_method_is_refused_with_the_method_named():
     with pytest.raises(ConfigError) as error:
         load_scene_config(path, ["bleeding.method=goo"])
     assert error.value.key == "bleeding.method"
-    assert load_scene_config(path, ["bleeding={}"])["bleeding"]["method"] == "particles"  # a scene that names none
+    assert load_scene_config(path, ["bleeding={}"])["bleeding"]["method"] == "height_field"  # a scene that names none
+    with pytest.raises(ConfigError) as error:  # one written for the particles without naming them: told what to add
+        load_scene_config(path, ["bleeding={substeps: 2}"])
+    assert error.value.key == "bleeding.substeps" and "add bleeding.method: particles" in error.value.message

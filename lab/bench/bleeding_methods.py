@@ -50,7 +50,7 @@ import time
 
 import numpy as np
 
-from lab.bench.common import pyplot, save, synced_seconds
+from lab.bench.common import grid_faces, json_finite, pyplot, save, synced_seconds
 from sims.config import REPO_ROOT
 
 G_MM_S2 = 9810.0
@@ -103,13 +103,6 @@ PHYSICS_HF = {"clotting_rate_1_s": 0.0, "pinning_depth_mm": 0.0, "lifetime_s": 3
 PHYSICS_PARTICLES = {"clotting_rate_1_s": 0.0, "pinning_density": 0.0, "lifetime_s": 36000.0}
 
 
-def _grid_faces(cells_x: int, cells_y: int) -> np.ndarray:
-    n = cells_x + 1
-    faces = [[j * n + i, j * n + i + 1, j * n + i + n + 1] for j in range(cells_y) for i in range(cells_x)]
-    faces += [[j * n + i, j * n + i + n + 1, j * n + i + n] for j in range(cells_y) for i in range(cells_x)]
-    return np.array(faces)
-
-
 def _mesh(vertices, faces, uv):
     import trimesh
 
@@ -122,7 +115,7 @@ def incline_mesh(side_mm: float = INCLINE_SIDE_MM, slope_deg: float = INCLINE_DE
     slope = math.radians(slope_deg)
     vertices = np.stack([xs.ravel(), ys.ravel() * math.cos(slope), ys.ravel() * math.sin(slope)], axis=1)
     uv = np.stack([xs.ravel() / side_mm + 0.5, ys.ravel() / side_mm + 0.5], axis=1)
-    return _mesh(vertices, _grid_faces(cells, cells), uv)
+    return _mesh(vertices, grid_faces(cells, cells), uv)
 
 
 def hollow_mesh(half_mm: float = HOLLOW_HALF_MM, cells: int = 40):
@@ -130,7 +123,7 @@ def hollow_mesh(half_mm: float = HOLLOW_HALF_MM, cells: int = 40):
     xs, ys = np.meshgrid(np.linspace(-half_mm, half_mm, cells + 1), np.linspace(-half_mm, half_mm, cells + 1))
     vertices = np.stack([xs.ravel(), ys.ravel(), (xs.ravel() ** 2 + ys.ravel() ** 2) / 100.0], axis=1)
     uv = np.stack([(xs.ravel() + half_mm) / (2 * half_mm), (ys.ravel() + half_mm) / (2 * half_mm)], axis=1)
-    return _mesh(vertices, _grid_faces(cells, cells), uv)
+    return _mesh(vertices, grid_faces(cells, cells), uv)
 
 
 def strip_surface(texel_mm: float):
@@ -143,7 +136,7 @@ def strip_surface(texel_mm: float):
     xs, ys = np.meshgrid(np.linspace(0.0, length, 9), np.linspace(0.0, width, 9))
     vertices = np.stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)], axis=1)
     uv = np.stack([xs.ravel(), ys.ravel()], axis=1) / (size * texel_mm)
-    return build_surface(_mesh(vertices, _grid_faces(8, 8), uv), size), size
+    return build_surface(_mesh(vertices, grid_faces(8, 8), uv), size), size
 
 
 def nusselt_depth_mm(q_mm2_s: float, nu_mm2_s: float, slope_deg: float = INCLINE_DEG) -> float:
@@ -500,22 +493,11 @@ def run(quick: bool) -> dict:
     cases += [martin_moyce(s, n) for s, n in plan["martin_moyce"]]
     growth = [cost_growth("height_field", plan["marks_ml"], divisor=d) for d in sizes["cost"]]
     growth += [cost_growth("particles", plan["marks_ml"], spacing_mm=s) for s in spacings]
-    return _finite({
+    return json_finite({
         "setup": {"dt_s": DT_S, "radius_ratio": RADIUS_RATIO, "incline_deg": INCLINE_DEG, "bleed_rate_ml_s": BLEED_RATE_ML_S,
                   "hollow_volume_ml": HOLLOW_VOLUME_ML, "h0_mm": H0_MM, "ritter_s": RITTER_S},
         "cases": cases, "growth": growth,
     })
-
-
-def _finite(value):
-    """NaN and infinities become None (JSON null), recursively."""
-    if isinstance(value, dict):
-        return {key: _finite(item) for key, item in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_finite(item) for item in value]
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    return value
 
 
 def _number(value, unit: str = "") -> str:

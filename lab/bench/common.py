@@ -1,4 +1,5 @@
 """Shared pieces of the benchmark sections: test surfaces, device description, plotting setup."""
+import math
 import platform
 from pathlib import Path
 import time
@@ -21,9 +22,26 @@ def plane_mesh(width_mm: float, height_mm: float, u_scale: float = 1.0, vertical
     zeros = np.zeros(xs.size)
     vertices = np.stack([xs.ravel(), zeros, ys.ravel()] if vertical else [xs.ravel(), ys.ravel(), zeros], axis=1)
     uv = np.stack([(xs.ravel() / width_mm + 0.5) * u_scale, ys.ravel() / height_mm + 0.5], axis=1)
-    faces = [[j * n + i, j * n + i + 1, j * n + i + n + 1] for j in range(cells) for i in range(cells)]
-    faces += [[j * n + i, j * n + i + n + 1, j * n + i + n] for j in range(cells) for i in range(cells)]
-    return trimesh.Trimesh(vertices, np.array(faces), visual=trimesh.visual.TextureVisuals(uv=uv), process=False)
+    return trimesh.Trimesh(vertices, grid_faces(cells, cells), visual=trimesh.visual.TextureVisuals(uv=uv), process=False)
+
+
+def grid_faces(cells_x: int, cells_y: int) -> np.ndarray:
+    """(2 cells_x cells_y, 3) triangles of a (cells_y + 1) x (cells_x + 1) vertex grid numbered row by row."""
+    n = cells_x + 1
+    faces = [[j * n + i, j * n + i + 1, j * n + i + n + 1] for j in range(cells_y) for i in range(cells_x)]
+    faces += [[j * n + i, j * n + i + n + 1, j * n + i + n] for j in range(cells_y) for i in range(cells_x)]
+    return np.array(faces)
+
+
+def json_finite(value):
+    """NaN and infinities become None (JSON null), recursively."""
+    if isinstance(value, dict):
+        return {key: json_finite(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_finite(item) for item in value]
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
 
 
 def build_plane(side_mm: float, size: int):

@@ -43,6 +43,8 @@ import time
 
 import numpy as np
 
+from lab.bench.common import json_finite
+
 A_MM = 25.0                      # column width a
 G_MM_S2 = 9810.0
 TANK_LENGTH_A, TANK_HEIGHT_A = 10.0, 2.5
@@ -287,7 +289,7 @@ def run(quick: bool) -> dict:
     runs = []
     for spacing, substeps, speed in plan:
         wanted = SNAPSHOT_T if (spacing, substeps, speed) == finest else ()
-        runs.append(_finite(simulate(spacing, substeps, sound_speed_mm_s=speed, snapshots=wanted)))
+        runs.append(json_finite(simulate(spacing, substeps, sound_speed_mm_s=speed, snapshots=wanted)))
     _RIGS.clear()
     from lab.bench import peer
 
@@ -300,17 +302,6 @@ def run(quick: bool) -> dict:
         "martin_moyce": [list(pair) for pair in MARTIN_MOYCE],
         "runs": runs,
     }
-
-
-def _finite(value):
-    """NaN and infinities become None (JSON null), recursively."""
-    if isinstance(value, dict):
-        return {key: _finite(item) for key, item in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_finite(item) for item in value]
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    return value
 
 
 def _fmt(value, spec: str) -> str:

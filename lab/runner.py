@@ -26,7 +26,7 @@ from sims.config import ConfigError
 from sims.scene import Scene, save_npz_atomic
 
 FINITE_CHECK_EVERY = 50  # steps between NaN/inf checks
-OUTPUTS = ("metrics.json", "final.png", "state.npz", "frames")  # what a run writes into its folder
+OUTPUTS = ("metrics.json", "final.png", "final_normal.png", "final_roughness.png", "state.npz", "frames")  # what a run writes into its folder
 
 
 class SimulationDiverged(RuntimeError):
@@ -114,7 +114,7 @@ def _swap_in(new: Path, out: Path) -> None:
 
 
 def _simulate(scene: Scene, folder: Path, total: int, frame_every: int, progress: bool) -> dict:
-    """Run `total` steps, writing frames then final.png, state.npz and metrics.json into `folder`; return metrics."""
+    """Run `total` steps, writing frames then final.png (and its final_normal.png and final_roughness.png), state.npz and metrics.json into `folder`; return metrics."""
     if frame_every:
         (folder / "frames").mkdir()
         write_png(folder / "frames" / "frame_00000.png", scene.composite())
@@ -135,6 +135,9 @@ def _simulate(scene: Scene, folder: Path, total: int, frame_every: int, progress
     metrics = scene.metrics()
     metrics.update(wall_s=wall, finite=True, steps_per_s=total / wall if wall > 0 else math.inf)
     write_png(folder / "final.png", scene.composite())
+    normal, roughness = scene.material_maps()
+    write_png(folder / "final_normal.png", normal)
+    write_png(folder / "final_roughness.png", roughness)
     save_npz_atomic(folder / "state.npz", scene.state_arrays())
     (folder / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
     return metrics

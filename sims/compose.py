@@ -1,38 +1,56 @@
-"""Display: tissue stages blended by the damage fields, blood over them -> one RGB texture (H, W, 3) uint8.
+"""The look: tissue stages blended by the burn, blood over them -> base colour, normal and roughness maps (H, W).
 
-A stage table (scene key look.stages) drives the tissue: the first stage is the base look; each
-later stage is mixed in with weight opacity * smoothstep(from, to, field), where field is one of
-coagulation (1 - exp(-Omega)), char, omega, temperature_c (all at the surface) or coagulation_depth_mm
-(how deep the burn goes, so a deep burn can look different from a shallow one). Reordering or adding stages needs no
-code. Blood covers the tissue where its film is thick enough: coverage is a smoothstep of the
-displayed film thickness between BLOOD_EDGE fractions of the rest film (a defined, anti-aliased
-edge rather than the glow ring of a plain blur), and its colour darkens from fresh red at the rest
-film to near black-red at BLOOD_DARK_FILMS films, and a thin film lets the tissue show through
-(opacity 1 - exp(-BLOOD_ABSORPTION films)). The film thickness is also read as a height map:
-its slope tilts a normal that catches a baked highlight, so puddles and rivulet edges look wet. Texels outside the UV charts take the colour of the
-nearest surface texel, so texture filtering in a viewer never bleeds background into the mesh.
+A stage table (scene key look.stages) drives the tissue: the first stage is the base look; each later stage is mixed
+in with weight opacity * smoothstep(from, to, field), where field is one of coagulation (1 - exp(-Omega)), char,
+omega, temperature_c (all at the surface) or coagulation_depth_mm (how deep the burn goes, so a deep burn can look
+different from a shallow one). Reordering or adding stages needs no code. Every stage has a colour texture and a
+surface: a height (mm, its map's red times relief_mm plus offset_mm, so coagulated tissue can sit lower than healthy
+tissue and char can stand up as a crust) and a roughness (its map's green, or a constant); both are blended with the
+colour's weights.
+
+Blood lies over the tissue as a layer of its thickness h (sims.film: the trail the look keeps on simulated time):
+its reflectance per colour channel is the Kubelka-Munk layer over the tissue's reflectance R_g (linear light),
+
+    R = (t (1 - R_g a) + R_g b) / (t (a - R_g) + b),  a = 1 + K/S, b = sqrt(a^2 - 1), t = tanh(b S h),
+
+with absorption K = 2 mu_a (Beer-Lambert's coefficient for diffuse light) and scattering S = 3/4 mu_s' of whole
+blood (haematocrit 45 %). Green and blue take 550 and 450 nm (Bosschaart et al. 2014, Lasers Med Sci 29:453,
+appendix: mu_a oxygenated 23.9 / 31.8, deoxygenated 26.0 / 40.3, mu_s' 2.6 / 4.3 per mm); red, whose channel spans
+about 580-700 nm, takes the mean of 600 nm (1.7 oxygenated, 7.9 deoxygenated: Prahl's haemoglobin extinction, DESIGN
+section 7) and 650 nm (0.16, 1.80: Bosschaart), mu_s' 1.5 per mm. A thin layer shows the tissue through it, a deep
+one tends to blood's own colour (a - b): 0.05 mm hides most green and blue, red passes through millimetres, and a
+pool is darker than a film over pale tissue. Fresh blood is FRESH_SATURATION oxygenated, clotted blood CLOT_SATURATION (darker). Where blood
+has been (the film's stain) the tissue keeps a brown-red dried stain (STAIN_TRANSMITTANCE: chosen, no measurement
+found). The blood's thickness is part of the surface height (a pool's edge is raised and rounded; a pool deeper than
+POOL_LEVEL_MM hides the tissue's relief) and wet blood is glossy. The normal map is the slope of that height; the
+browser lights it, so highlights move with the camera and nothing is baked into the colour.
+
+Texels outside the UV charts take the maps of the nearest surface texel, so texture filtering in a viewer never
+bleeds background into the mesh.
 """
 import numpy as np
 import taichi as ti
 from PIL import Image
 
 FIELD_CODES = {"coagulation": 0, "char": 1, "omega": 2, "temperature_c": 3, "coagulation_depth_mm": 4}
-BLOOD_EDGE = (0.25, 0.6)              # film fractions where coverage goes from 0 to 1
-BLOOD_DARK_FILMS = 4.0                # film multiples at which blood reaches its darkest colour
-BLOOD_THIN_RGB = (0.45, 0.02, 0.03)   # fresh blood film over tissue
-BLOOD_THICK_RGB = (0.16, 0.0, 0.01)  # pooled blood
-BLOOD_GLOSS = 0.35                    # strength of the baked highlight on the blood surface
-BLOOD_ABSORPTION = 3.0                # opacity of a film: 1 - exp(-absorption * films); thin blood shows tissue
-GLOSS_REACH = 6                       # texels either side for the slope of the blood surface
-LIGHT_DIR = (-0.55, -0.65, 0.52)       # grid-space light (x = columns, y = rows, z out of the surface)
+BLOOD_MU_A_OXY = (0.93, 23.9, 31.8)     # 1/mm, red (mean of 600 and 650 nm) / green (550) / blue (450): docstring
+BLOOD_MU_A_DEOXY = (4.85, 26.0, 40.3)   # 1/mm
+BLOOD_MU_S_REDUCED = (1.5, 2.6, 4.3)    # 1/mm
+FRESH_SATURATION = 0.85                 # oxygen saturation of fresh surgical blood (arterial and venous mixed)
+CLOT_SATURATION = 0.3                   # of clotted blood at rest
+STAIN_TRANSMITTANCE = (0.72, 0.5, 0.45)  # what a dried stain lets through, per channel (brown-red)
+STAIN_MM = 0.1                          # blood depth (mm) that leaves a full stain
+BLOOD_ROUGHNESS = (0.1, 0.4)            # fresh, clotted
+WET_MM = 0.01                           # blood depth at which the surface is wet (glossy) by 1 - 1/e
+POOL_LEVEL_MM = 0.2                     # blood deeper than this has a level surface over the tissue's relief
+NORMAL_LEVEL = 127.5                    # 8-bit normal maps: 0 maps to 127.5
 
 
 class TextureError(ValueError):
     """A stage texture that cannot be read."""
 
 
-def load_texture(path, size: int, tile: int = 1) -> np.ndarray:
-    """Read an image as (size, size, 3) float32 in [0, 1], repeated `tile` times per side."""
+def _read_image(path, size: int, tile: int) -> np.ndarray:
     try:
         with Image.open(path) as image:
             cell = image.convert("RGB").resize((max(1, round(size / tile)),) * 2, Image.Resampling.LANCZOS)
@@ -47,15 +65,68 @@ def load_texture(path, size: int, tile: int = 1) -> np.ndarray:
     return np.asarray(tiled, np.float32) / 255.0
 
 
+def load_texture(path, size: int, tile: int = 1) -> np.ndarray:
+    """Read an image as (size, size, 3) float32 in [0, 1], repeated `tile` times per side."""
+    return _read_image(path, size, tile)
+
+
+def stage_surface(stage: dict, size: int) -> np.ndarray:
+    """(size, size, 2) float32 height (mm) and roughness of a stage: from its surface map (red: height in units of
+    relief_mm, green: roughness) when it has one, else its constant roughness at height 0; offset_mm added."""
+    if stage.get("surface"):
+        image = _read_image(stage["surface"], size, stage["tile"])
+        height, roughness = image[..., 0] * stage["relief_mm"], image[..., 1]
+    else:
+        height, roughness = np.zeros((size, size), np.float32), np.full((size, size), stage["roughness"], np.float32)
+    return np.stack([height + stage["offset_mm"], roughness], axis=-1).astype(np.float32)
+
+
+@ti.func
+def _smoothstep(lo, hi, value):
+    x = ti.min(ti.max((value - lo) / (hi - lo), 0.0), 1.0)
+    return x * x * (3.0 - 2.0 * x)
+
+
+@ti.func
+def _linear(srgb):
+    """sRGB-encoded colour (0-1) -> linear light."""
+    return ti.select(srgb <= 0.04045, srgb / 12.92, ((srgb + 0.055) / 1.055) ** 2.4)
+
+
+@ti.func
+def _encoded(linear):
+    """Linear light -> sRGB-encoded colour (0-1)."""
+    x = ti.max(linear, 0.0)
+    return ti.select(x <= 0.0031308, 12.92 * x, 1.055 * x ** (1.0 / 2.4) - 0.055)
+
+
+@ti.func
+def blood_layer(ground, thickness_mm, saturation):
+    """Kubelka-Munk reflectance (linear, per channel) of a blood layer thickness_mm deep over reflectance `ground`."""
+    oxy, deoxy = ti.Vector(BLOOD_MU_A_OXY), ti.Vector(BLOOD_MU_A_DEOXY)
+    mu_a = saturation * oxy + (1.0 - saturation) * deoxy
+    s = 0.75 * ti.Vector(BLOOD_MU_S_REDUCED)
+    a = 1.0 + 2.0 * mu_a / s
+    b = ti.sqrt(a * a - 1.0)
+    t = ti.tanh(b * s * thickness_mm)
+    return (t * (1.0 - ground * a) + ground * b) / (t * (a - ground) + b)
+
+
 @ti.data_oriented
 class Composer:
-    """Stage textures in one field; compose() blends them from the cautery's fields and adds blood."""
+    """Stage textures and surfaces in fields; compose() blends them from the cautery's fields and lays blood over them.
+    After compose(): rgb (H, W, 3) u8, normal (H, W, 3) u8 (glTF tangent-space normal map: x along columns, y toward
+    lower rows, z out), roughness (H, W) u8 (PBR roughness x 255)."""
 
-    def __init__(self, stages: list, textures: list, fill_index: np.ndarray, texel_mm: float):
+    def __init__(self, stages: list, textures: list, surfaces: list, fill_index: np.ndarray, texel_mm: float):
+        """textures: one (H, W, 3) float32 colour (sRGB, 0-1) per stage; surfaces: one (H, W, 2) float32 height (mm)
+        and roughness per stage (stage_surface); texel_mm: typical texel size, for the slope of the height."""
         count = len(stages)
         height, width = fill_index.shape
         self.textures = ti.Vector.field(3, ti.f32, (count, height, width))
         self.textures.from_numpy(np.stack(textures).astype(np.float32))
+        self.surfaces = ti.Vector.field(2, ti.f32, (count, height, width))
+        self.surfaces.from_numpy(np.stack(surfaces).astype(np.float32))
         self.ranges = ti.Vector.field(3, ti.f32, count)  # from, to, opacity
         # the fields each stage reads, fixed when the kernels compile: each texel samples only the fields in use
         self.codes = tuple(FIELD_CODES[stage["field"]] if stage["field"] else -1 for stage in stages)
@@ -65,42 +136,50 @@ class Composer:
         self.ranges.from_numpy(np.array([[stage["from"], stage["to"], stage["opacity"]] for stage in stages], np.float32))
         self.fill = ti.field(ti.i32, (height, width))
         self.fill.from_numpy(fill_index.astype(np.int32))
-        self.color = ti.Vector.field(3, ti.f32, (height, width))  # tissue colour
+        self.color = ti.Vector.field(3, ti.f32, (height, width))    # tissue colour (sRGB, 0-1) at surface texels
         self.color.from_numpy(textures[0].astype(np.float32))
+        self.tissue = ti.Vector.field(2, ti.f32, (height, width))   # tissue height (mm), roughness at surface texels
+        self.tissue.from_numpy(surfaces[0].astype(np.float32))
+        self.relief = ti.field(ti.f32, (height, width))             # surface height with blood (mm), every texel
         self.rgb = ti.Vector.field(3, ti.u8, (height, width))
+        self.normal = ti.Vector.field(3, ti.u8, (height, width))
+        self.roughness = ti.field(ti.u8, (height, width))
         self.count = count
-        self.texel_mm = texel_mm  # typical texel size, for slopes of the blood height map
+        self.texel_mm = float(texel_mm)
 
-    def compose(self, tiles, heat=None, bleeding=None) -> np.ndarray:
-        """(H, W, 3) uint8 from the models present (each may be None; heat: sims.heat_display.HeatDisplay). The
-        tissue is recomposed only on the tiles that tiles (sims.display_tiles.DisplayTiles) flags, the others keep
-        their colour; blood covers every tile."""
-        if tiles.listed:
-            if heat is not None:
-                self._tissue(heat, tiles, bleeding is None)
-            elif bleeding is None:
-                self._plain(tiles)
-        if bleeding is not None:
-            self._with_blood(bleeding.thickness, bleeding.params["film_thickness_mm"], self.texel_mm)
+    def compose(self, tiles, heat=None, film=None) -> np.ndarray:
+        """(H, W, 3) uint8 base colour from the models present (each may be None; heat: sims.heat_display.HeatDisplay,
+        film: sims.film.BloodFilm); normal and roughness follow (maps()). The tissue is recomposed only on the tiles
+        that tiles (sims.display_tiles.DisplayTiles) flags, the others keep theirs; blood covers every tile."""
+        if tiles.listed and heat is not None:
+            self._tissue(heat, tiles)
+        if film is not None:
+            self._with_blood(film)
+        elif tiles.listed:
+            self._plain(tiles)
+        if film is not None or tiles.listed:
+            self._normals(self.texel_mm)
         return self.rgb.to_numpy()
 
+    def maps(self) -> tuple[np.ndarray, np.ndarray]:
+        """(normal (H, W, 3) uint8, roughness (H, W) uint8) of the last compose()."""
+        return self.normal.to_numpy(), self.roughness.to_numpy()
+
     @ti.kernel
-    def _tissue(self, heat: ti.template(), tiles: ti.template(), shown: ti.template()):
-        """Tissue colour (color, at surface texels) of the flagged tiles, and their rgb when shown (no blood pass
-        follows): each texel shows the stages blended at its fill source, from the burn read there."""
-        for r, c in self.rgb:
-            if tiles.flagged(r, c):
-                sr, sc = self._source(r, c)
-                color = self.textures[0, sr, sc]
+    def _tissue(self, heat: ti.template(), tiles: ti.template()):
+        """Tissue colour and surface of the flagged tiles' surface texels, from the burn read there."""
+        for r, c in self.color:
+            if tiles.flagged(r, c) and self.fill[r, c] == r * self.fill.shape[1] + c:
+                color, surface = self.textures[0, r, c], self.surfaces[0, r, c]
                 omega, char, temperature, depth = 0.0, 0.0, 0.0, 0.0
                 if ti.static(self.reads_omega):
-                    omega = heat.sample(heat.cautery.omega, sr, sc)
+                    omega = heat.sample(heat.cautery.omega, r, c)
                 if ti.static(self.reads[FIELD_CODES["char"]]):
-                    char = heat.sample(heat.cautery.char, sr, sc)
+                    char = heat.sample(heat.cautery.char, r, c)
                 if ti.static(self.reads[FIELD_CODES["temperature_c"]]):
-                    temperature = heat.sample(heat.cautery.surface_temperature, sr, sc)
+                    temperature = heat.sample(heat.cautery.surface_temperature, r, c)
                 if ti.static(self.reads[FIELD_CODES["coagulation_depth_mm"]]):
-                    depth = heat.sample(heat.cautery.coagulation_depth, sr, sc)
+                    depth = heat.sample(heat.cautery.coagulation_depth, r, c)
                 for s in ti.static(range(1, self.count)):
                     value = depth
                     if ti.static(self.codes[s] == FIELD_CODES["coagulation"]):
@@ -111,18 +190,11 @@ class Composer:
                         value = omega
                     elif ti.static(self.codes[s] == FIELD_CODES["temperature_c"]):
                         value = temperature
-                    lo, hi = self.ranges[s][0], self.ranges[s][1]
-                    x = ti.min(ti.max((value - lo) / (hi - lo), 0.0), 1.0)
-                    weight = x * x * (3.0 - 2.0 * x) * self.ranges[s][2]
-                    color = color * (1.0 - weight) + self.textures[s, sr, sc] * weight
-                if sr == r and sc == c:
-                    self.color[r, c] = color
-                if ti.static(shown):
-                    self._write(r, c, color)
-
-    @ti.func
-    def _write(self, r, c, color):
-        self.rgb[r, c] = ti.cast(ti.min(ti.max(color * 255.0 + 0.5, 0.0), 255.0), ti.u8)
+                    weight = _smoothstep(self.ranges[s][0], self.ranges[s][1], value) * self.ranges[s][2]
+                    color = color * (1.0 - weight) + self.textures[s, r, c] * weight
+                    surface = surface * (1.0 - weight) + self.surfaces[s, r, c] * weight
+                self.color[r, c] = color
+                self.tissue[r, c] = surface
 
     @ti.func
     def _source(self, r, c):
@@ -130,29 +202,45 @@ class Composer:
         source = self.fill[r, c]
         return source // width, source % width
 
+    @ti.func
+    def _write(self, r, c, color, height, roughness):
+        self.rgb[r, c] = ti.cast(ti.min(ti.max(color * 255.0 + 0.5, 0.0), 255.0), ti.u8)
+        self.relief[r, c] = height
+        self.roughness[r, c] = ti.cast(ti.min(ti.max(roughness * 255.0 + 0.5, 0.0), 255.0), ti.u8)
+
     @ti.kernel
     def _plain(self, tiles: ti.template()):
         for r, c in self.rgb:
             if tiles.flagged(r, c):
                 sr, sc = self._source(r, c)
-                self._write(r, c, self.color[sr, sc])
+                self._write(r, c, self.color[sr, sc], self.tissue[sr, sc][0], self.tissue[sr, sc][1])
 
     @ti.kernel
-    def _with_blood(self, thickness: ti.template(), film: ti.f32, texel_mm: ti.f32):
-        thin, thick = ti.Vector(BLOOD_THIN_RGB), ti.Vector(BLOOD_THICK_RGB)
-        light = ti.Vector(LIGHT_DIR).normalized()
-        half = (light + ti.Vector([0.0, 0.0, 1.0])).normalized()
-        height, width = self.rgb.shape[0], self.rgb.shape[1]
+    def _with_blood(self, film: ti.template()):
         for r, c in self.rgb:
             sr, sc = self._source(r, c)
-            films = thickness[sr, sc] / film
-            x = ti.min(ti.max((films - BLOOD_EDGE[0]) / (BLOOD_EDGE[1] - BLOOD_EDGE[0]), 0.0), 1.0)
-            cover = x * x * (3.0 - 2.0 * x)
-            depth = ti.min(ti.max((films - 1.0) / (BLOOD_DARK_FILMS - 1.0), 0.0), 1.0)
-            blood = thin * (1.0 - depth) + thick * depth
-            dx = thickness[sr, ti.min(sc + GLOSS_REACH, width - 1)] - thickness[sr, ti.max(sc - GLOSS_REACH, 0)]
-            dy = thickness[ti.min(sr + GLOSS_REACH, height - 1), sc] - thickness[ti.max(sr - GLOSS_REACH, 0), sc]
-            normal = ti.Vector([-dx, -dy, 2.0 * GLOSS_REACH * texel_mm]).normalized()
-            gloss = BLOOD_GLOSS * ti.max(normal.dot(half), 0.0) ** 24
-            alpha = cover * (1.0 - ti.exp(-BLOOD_ABSORPTION * films))
-            self._write(r, c, self.color[sr, sc] * (1.0 - alpha) + blood * alpha + gloss * cover)
+            h = film.sample(film.trail, sr, sc)
+            clot = film.clot_at(sr, sc)
+            stain = 1.0 - ti.exp(-film.sample(film.stain, sr, sc) / STAIN_MM)
+            ground = _linear(self.color[sr, sc])
+            ground *= 1.0 - stain * (1.0 - ti.Vector(STAIN_TRANSMITTANCE))
+            color = _encoded(blood_layer(ground, h, FRESH_SATURATION + (CLOT_SATURATION - FRESH_SATURATION) * clot))
+            wet = 1.0 - ti.exp(-h / WET_MM)
+            blood_roughness = BLOOD_ROUGHNESS[0] + (BLOOD_ROUGHNESS[1] - BLOOD_ROUGHNESS[0]) * clot
+            tissue = self.tissue[sr, sc]
+            level = _smoothstep(0.0, POOL_LEVEL_MM, h)
+            self._write(r, c, color, tissue[0] * (1.0 - level) + h, tissue[1] * (1.0 - wet) + blood_roughness * wet)
+
+    @ti.kernel
+    def _normals(self, texel_mm: ti.f32):
+        """Normal map from the slope of relief at each texel's fill source (central differences, one-sided at the
+        texture's border)."""
+        height, width = self.relief.shape
+        for r, c in self.normal:
+            sr, sc = self._source(r, c)
+            left, right = ti.max(sc - 1, 0), ti.min(sc + 1, width - 1)
+            up, down = ti.max(sr - 1, 0), ti.min(sr + 1, height - 1)
+            slope_x = (self.relief[sr, right] - self.relief[sr, left]) / (ti.max(right - left, 1) * texel_mm)
+            slope_y = (self.relief[down, sc] - self.relief[up, sc]) / (ti.max(down - up, 1) * texel_mm)
+            n = ti.Vector([-slope_x, slope_y, 1.0]).normalized()
+            self.normal[r, c] = ti.cast(ti.min(ti.max(NORMAL_LEVEL + NORMAL_LEVEL * n + 0.5, 0.0), 255.0), ti.u8)

@@ -29,10 +29,24 @@ STAGE_FIELDS = ("coagulation", "char", "omega", "temperature_c", "coagulation_de
 SHAPE_TYPES = ("ball", "capsule", "spatula", "mesh")
 CAUTERY_SCHEMES = ("explicit", "implicit")  # = sims.cautery.SCHEMES (not imported here: that imports Taichi)
 CAUTERY_BOTTOMS = ("body", "insulated")  # = sims.layers.BOTTOMS
+# The liver's look (tools/make_static.py makes the textures; their colours are cited there): healthy capsule, the
+# hyperaemic rim where damage has begun (Omega 0.001-0.03: tissue that stayed near 45-50 C), the pale crest at the
+# coagulum's margin, the tan coagulum where it is 0.1-0.45 mm deep, browner where the burn is deeper, black-brown
+# char. Coagulum and char sit lower than the capsule (shrinkage); char stands up as a cracked crust within that.
+_HEALTHY_SURFACE = {"surface": "textures/liver_healthy_surface.png", "relief_mm": 0.04}
+_COAGULATED_SURFACE = {"surface": "textures/liver_coagulated_surface.png", "relief_mm": 0.06, "offset_mm": -0.05}
 DEFAULT_STAGES = [
-    {"name": "healthy", "texture": "textures/liver_healthy.png"},
-    {"name": "coagulated", "texture": "textures/liver_coagulated.png", "field": "coagulation", "from": 0.2, "to": 0.95},
-    {"name": "charred", "texture": "textures/liver_charred.png", "field": "char", "from": 0.05, "to": 0.8},
+    {"name": "healthy", "texture": "textures/liver_healthy.png", **_HEALTHY_SURFACE},
+    {"name": "hyperaemic_rim", "texture": "textures/liver_hyperaemic.png", "field": "omega", "from": 0.001, "to": 0.03,
+     "opacity": 0.75, **_HEALTHY_SURFACE},
+    {"name": "pale_crest", "texture": "textures/liver_pale.png", "field": "coagulation", "from": 0.3, "to": 0.8,
+     **_COAGULATED_SURFACE},
+    {"name": "coagulated", "texture": "textures/liver_coagulated.png", "field": "coagulation_depth_mm", "from": 0.1,
+     "to": 0.45, **_COAGULATED_SURFACE},
+    {"name": "browned", "texture": "textures/liver_browned.png", "field": "coagulation_depth_mm", "from": 0.6, "to": 1.2,
+     "opacity": 0.8, **_COAGULATED_SURFACE},
+    {"name": "charred", "texture": "textures/liver_charred.png", "field": "char", "from": 0.05, "to": 0.8,
+     "surface": "textures/liver_charred_surface.png", "relief_mm": 0.15, "offset_mm": -0.08},
 ]
 
 
@@ -279,6 +293,9 @@ _TIME = params.ParamSpec("t_s", "s", 0.0, 0.0, 1.0e5, "")
 _FROM_TO = params.ParamSpec("threshold", "", 0.0, -1.0e4, 1.0e4, "")
 _TILE = params.ParamSpec("tile", "repeats", 1, 1, 64, "", integer=True)
 _OPACITY = params.ParamSpec("opacity", "", 1.0, 0.0, 1.0, "")
+_RELIEF = params.ParamSpec("relief_mm", "mm", 0.0, 0.0, 2.0, "height of the surface map's full red")
+_OFFSET = params.ParamSpec("offset_mm", "mm", 0.0, -1.0, 1.0, "the stage's surface level against the first stage's")
+_ROUGHNESS = params.ParamSpec("roughness", "", 0.6, 0.0, 1.0, "PBR roughness where the stage has no surface map")
 
 _KEYFRAME = Record(
     {
@@ -320,6 +337,10 @@ _STAGE = Record(
         "to": Number(_FROM_TO, default=1.0),
         "tile": Number(_TILE),
         "opacity": Number(_OPACITY),
+        "surface": Optional(FilePath()),
+        "relief_mm": Number(_RELIEF),
+        "offset_mm": Number(_OFFSET),
+        "roughness": Number(_ROUGHNESS),
     },
     required=("name", "texture"),
 )
@@ -353,7 +374,7 @@ SCENE = Record(
         "cautery": Record({**_numbers(params.CAUTERY), "scheme": Text("explicit", choices=CAUTERY_SCHEMES),
                            "bottom": Text("body", choices=CAUTERY_BOTTOMS)}),
         "bleeding": MethodRecord({method: _numbers(table) for method, table in params.BLEEDING_METHODS.items()}),
-        "look": Record({"stages": ListOf(_STAGE, default=DEFAULT_STAGES, max_len=8)}, check=lambda look, key, ctx: _check_stages(look["stages"], _join(key, "stages"), ctx)),
+        "look": Record({"stages": ListOf(_STAGE, default=DEFAULT_STAGES, max_len=8), **_numbers(params.LOOK)}, check=lambda look, key, ctx: _check_stages(look["stages"], _join(key, "stages"), ctx)),
         "instruments": ListOf(_INSTRUMENT, max_len=8),
         "bleed_points": ListOf(_BLEED_POINT),
     },

@@ -96,7 +96,7 @@ class HeightFieldBleeding:
 
     walls: open mesh borders hold the blood (no outfall pipes; benchmarks such as the dam break).
     display: a sims.resample.GridResampler from this surface's grid onto a finer display grid (bleeding.grid_divisor),
-    or None when blood runs on the display grid itself. With one, `thickness`, the state arrays and the texels
+    or None when blood runs on the display grid itself. With one, the state arrays and the texels
     spawn_rate takes are on the display grid; depth_mm(), the metrics and the stepping are on this one."""
 
     method = "height_field"
@@ -174,8 +174,7 @@ class HeightFieldBleeding:
         self.source = ti.field(ti.i32, shape)           # units spawned for the coming step, added over its substeps
         self.clot = ti.field(ti.f32, shape)
         self.stain = ti.field(ti.f32, shape)            # largest depth seen, mm
-        self.thickness = ti.field(ti.f32, shape if display is None else display.fine_shape)  # displayed depth, mm
-        self.depth = ti.field(ti.f32, shape)            # depth (mm) read by the display when it is finer
+        self.film_shape, self.film_display, self.film_clot = shape, display, self.clot  # the look's film (sims.film)
         self.give = ti.field(ti.f32, shape)             # units a pipe of 1 mm width carries per mm/s this substep
         self.scale = ti.field(ti.f32, shape)            # outflow limiter of this substep (1: not limited)
         self.unit_per_area = ti.field(ti.f32, shape)    # mm of depth per unit
@@ -236,7 +235,7 @@ class HeightFieldBleeding:
 
     def reset(self) -> None:
         """No blood, no stain, counters at zero."""
-        for name in ("volume", "source", "inflow", "clot", "stain", "thickness", "give", "u", "link_u", "counts", "stats"):
+        for name in ("volume", "source", "inflow", "clot", "stain", "give", "u", "link_u", "counts", "stats"):
             getattr(self, name).fill(0)
         self.tiles.hot.fill(-1)
         self.tiles.depth.fill(0)
@@ -658,26 +657,11 @@ class HeightFieldBleeding:
                     ti.atomic_max(self.stats[0], ti.max(umax + self.gt[r, c] * reach, ti.sqrt(self.gn[r, c] * h)))
 
     # --- outputs ------------------------------------------------------------------------------
-    def update_display(self, fade: float) -> None:
-        """thickness = max(depth, fade * previous thickness), depth read bilinearly on a finer display grid."""
-        if self.display is not None:
-            self._depths()
-        self._display(float(fade))
-
     @ti.kernel
-    def _depths(self):
-        for r, c in self.depth:
-            self.depth[r, c] = self._depth(r, c)
-
-    @ti.kernel
-    def _display(self, fade: ti.f32):
-        for r, c in self.thickness:
-            h = 0.0
-            if ti.static(self._same_grid):
-                h = self._depth(r, c)
-            else:
-                h = self.display.sample(self.depth, r, c)
-            self.thickness[r, c] = ti.max(h, fade * self.thickness[r, c])
+    def fresh_film(self, out: ti.template()):
+        """out (this grid) = blood depth, mm."""
+        for r, c in out:
+            out[r, c] = self._depth(r, c)
 
     def depth_mm(self) -> np.ndarray:
         """(H, W) blood depth along the normal, mm (float64 from the exact volumes)."""

@@ -75,6 +75,7 @@ CAUTERY = _table(
 RETIRED = {
     "cautery.heated_layer_mm": "the tool's heat now enters the top of layers in depth (cautery.layers, cautery.depth_mm); "
                                "the key is ignored",
+    "bleeding.display_fade_s": "the picture is not physics: it moved to look.blood_trail_s (on simulated time); the key is ignored",
 }
 
 INSTRUMENT = _table(
@@ -108,7 +109,6 @@ BLEEDING = _table(
     ParamSpec("rest_speed_mm_s", "mm/s", 1.0, 0.0, 50.0, "blood slower than this counts as at rest for clotting"),
     ParamSpec("lifetime_s", "s", 600.0, 0.1, 36000.0, "particles older than this expire"),
     ParamSpec("substeps", "", 2, 1, 16, "fluid substeps per simulation step", integer=True),
-    ParamSpec("display_fade_s", "s", 0.2, 0.0, 5.0, "blood display keeps traces of moving blood for about this long"),
     ParamSpec("capacity", "particles", 0, 0, 2_000_000, "particle pool size; 0 sizes it from the bleed rates, duration and lifetime", integer=True),
 )
 
@@ -121,7 +121,6 @@ HEIGHT_FIELD = _table(
     ParamSpec("clotting_rate_1_s", "1/s", 0.1, 0.0, 10.0, "how fast blood at rest clots and stops"),
     ParamSpec("rest_speed_mm_s", "mm/s", 1.0, 0.0, 50.0, "blood slower than this counts as at rest for clotting"),
     ParamSpec("lifetime_s", "s", 600.0, 0.1, 36000.0, "blood dries exponentially with this time constant"),
-    ParamSpec("display_fade_s", "s", 0.2, 0.0, 5.0, "blood display keeps traces of moving blood for about this long"),
     ParamSpec("cfl", "", 0.6, 0.05, 0.65, "substeps are added so that the fastest wave crosses this fraction of the shortest pipe per "
               "substep (explicit gravity waves: grid-scale noise grows above about 0.73)"),
     ParamSpec("max_substeps", "", 64, 1, 512, "upper bound of the automatic substep count per step", integer=True),
@@ -134,6 +133,11 @@ HEIGHT_FIELD = _table(
 # pool, and costs what its wetted area costs; README "Bleeding methods compared"). A scene written for the particles
 # without naming them is refused at its first particle key, with the method named.
 BLEEDING_METHODS = {"height_field": HEIGHT_FIELD, "particles": BLEEDING}
+
+# The look (sims.compose, sims.film): what only the picture depends on.
+LOOK = _table(
+    ParamSpec("blood_trail_s", "s", 0.2, 0.0, 5.0, "the look keeps traces of moving blood for about this long (simulated time)"),
+)
 
 BLEED_POINT = _table(
     ParamSpec("rate_ml_s", "ml/s", 0.02, 0.0, 10.0, "bleeding rate before coagulation at the point"),

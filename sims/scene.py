@@ -20,6 +20,7 @@ _MODEL_GROUPS = (
     ("tissue", params.TISSUE, "cautery", set()),
     ("cautery", params.CAUTERY, "cautery", {"layers", "depth_mm", "heat_grid_divisor"}),
     ("bleeding", None, "bleeding", None),  # the table and rebuild keys of the scene's bleeding method (sims.models)
+    ("look", params.LOOK, "bleeding", set()),
 )
 SHAPE_PARAMETERS = {"ball": ("radius_mm",), "capsule": ("radius_mm", "length_mm"), "spatula": ("width_mm", "thickness_mm", "length_mm"),
                     "mesh": ("sdf_resolution",)}
@@ -84,12 +85,13 @@ class SceneInputs:
     the inputs of its last good build in memory)."""
 
     mesh: object            # trimesh.Trimesh of the tissue
-    textures: list          # one (size, size, 3) uint8 texture per look stage
+    textures: list          # one (size, size, 3) float32 colour per look stage
+    surfaces: list          # one (size, size, 2) float32 height (mm) and roughness per look stage (sims.compose)
 
 
 def load_inputs(config: dict) -> SceneInputs:
     """Read and check every input file of a validated scene config; ConfigError names the file and the key."""
-    from sims.compose import TextureError, load_texture
+    from sims.compose import TextureError, load_texture, stage_surface
     from sims.surface import MeshError, load_mesh
 
     file = config["scene_file"]
@@ -97,12 +99,16 @@ def load_inputs(config: dict) -> SceneInputs:
         mesh = load_mesh(config["mesh"])
     except MeshError as exc:
         raise ConfigError(file, "mesh", f"{config['mesh']}: {exc}") from None
-    textures = []
+    textures, surfaces = [], []
     for index, stage in enumerate(config["look"]["stages"]):
-        try:
-            textures.append(load_texture(stage["texture"], config["texture_size"], stage["tile"]))
-        except TextureError as exc:
-            raise ConfigError(file, f"look.stages.{index}.texture", f"{stage['texture']}: {exc}") from None
+        for key in ("texture", "surface"):
+            try:
+                if key == "texture":
+                    textures.append(load_texture(stage["texture"], config["texture_size"], stage["tile"]))
+                else:
+                    surfaces.append(stage_surface(stage, config["texture_size"]))
+            except TextureError as exc:
+                raise ConfigError(file, f"look.stages.{index}.{key}", f"{stage[key]}: {exc}") from None
     for index, item in enumerate(config["instruments"]):
         if item["shape"]["type"] == "mesh":
             key = f"instruments.{index}.shape.file"
@@ -112,7 +118,7 @@ def load_inputs(config: dict) -> SceneInputs:
                 raise ConfigError(file, key, f"{item['shape']['file']}: {exc}") from None
             if not tool.is_watertight:
                 raise ConfigError(file, key, f"{item['shape']['file']}: an instrument mesh must be closed (watertight) to have an inside")
-    return SceneInputs(mesh, textures)
+    return SceneInputs(mesh, textures, surfaces)
 
 
 class Scene:
@@ -134,7 +140,7 @@ class Scene:
             except LayerBudget as exc:
                 raise ConfigError(self.file, "cautery.layers", str(exc)) from None
         inputs = inputs or load_inputs(config)
-        mesh, textures = inputs.mesh, inputs.textures
+        mesh, textures, surfaces = inputs.mesh, inputs.textures, inputs.surfaces
         self.arch = backend.init(arch)
         try:
             self.surface = build_surface(mesh, size)
@@ -143,7 +149,6 @@ class Scene:
         self.models = list(config["models"])
         self.time_s, self.steps = 0.0, 0
         self._time_base = (0.0, 0, config["time_step_s"])  # time_s = t0 + (steps - n0) * dt while dt stays dt
-        self._displayed_at = 0.0
         self.profile = False      # True: sync the device around each model and add its wall seconds to model_seconds
         self.model_seconds: dict[str, float] = {}
         from sims.compose import Composer
@@ -151,7 +156,7 @@ class Scene:
         from sims.instruments import Instrument
 
         self.instruments = [Instrument.from_config(item) for item in config["instruments"]]
-        self.cautery = self.bleeding = None
+        self.cautery = self.bleeding = self.film = None
         self.bleed_points = []
         self._active_tool = None      # (name, position mm, last move mm) of the heating tool last seen energized
         self._section_sampler = None  # sims.section.SectionSampler, made on the first burn_section()
@@ -173,13 +178,16 @@ class Scene:
             from sims.models import build_bleeding
             from sims.bleed_points import BleedPoint
 
+            from sims.film import BloodFilm
+
             self.bleeding = build_bleeding(self.surface, config)
+            self.film = BloodFilm(self.bleeding)
             self.bleed_points = [BleedPoint(item) for item in config["bleed_points"]]
             rows, cols = np.nonzero(self.surface.mask)
             self._texels = np.stack([rows, cols], axis=1)
             self._texel_tree = cKDTree(self.surface.position_mm[rows, cols])
         texel_mm = float(np.sqrt(np.median(self.surface.texel_area_mm2[self.surface.mask])))
-        self.composer = Composer(config["look"]["stages"], textures, self.surface.fill_index, texel_mm)
+        self.composer = Composer(config["look"]["stages"], textures, surfaces, self.surface.fill_index, texel_mm)
         if self.cautery is None:
             self.display_tiles = DisplayTiles(self.surface.fill_index, None, self.surface.mask.shape, DISPLAY_TILE)
         else:
@@ -213,6 +221,8 @@ class Scene:
         if self.bleeding is not None:
             with self._timed("bleeding"):
                 self._bleed(dt)
+            with self._timed("compose"):
+                self.film.advance(dt, self.config["look"]["blood_trail_s"])
         self.steps += 1
         t0, n0, _ = self._time_base
         self.time_s = t0 + (self.steps - n0) * dt  # = steps * dt exactly while dt never changed
@@ -549,27 +559,27 @@ class Scene:
         self.release()
         self.time_s, self.steps = 0.0, 0
         self._time_base = (0.0, 0, self.time_step_s)
-        self._displayed_at = 0.0
         if self.cautery is not None:
             self.cautery.reset()
             self._active_tool = None
         if self.bleeding is not None:
             self.bleeding.reset()
+            self.film.reset()
 
     # --- outputs ------------------------------------------------------------------------------
     def composite(self) -> np.ndarray:
-        """The display texture (H, W, 3) uint8, image orientation (row 0 = v 1)."""
+        """The display texture's base colour (H, W, 3) uint8, image orientation (row 0 = v 1); material_maps() then
+        gives its normal and roughness maps. It shows the state after the last step, whenever it is called."""
         with self._timed("compose"):
-            if self.bleeding is not None:
-                fade_s = self.bleeding.params["display_fade_s"]
-                elapsed = self.time_s - self._displayed_at
-                self.bleeding.update_display(float(np.exp(-elapsed / fade_s)) if fade_s > 0 and elapsed >= 0 else 0.0)
-                self._displayed_at = self.time_s
             if self.cautery is None:
                 self.display_tiles.select(None)
-                return self.composer.compose(self.display_tiles, None, self.bleeding)
+                return self.composer.compose(self.display_tiles, None, self.film)
             self.display_tiles.select(self.cautery.take_changed_tiles(self.composer.shows_temperature))
-            return self.composer.compose(self.display_tiles, self.heat_display, self.bleeding)
+            return self.composer.compose(self.display_tiles, self.heat_display, self.film)
+
+    def material_maps(self) -> tuple[np.ndarray, np.ndarray]:
+        """(normal (H, W, 3) uint8, roughness (H, W) uint8) of the last composite() (sims.compose.Composer)."""
+        return self.composer.maps()
 
     def state_arrays(self, display_grid: bool = True) -> dict:
         """Arrays of DESIGN section 4 for the models this scene runs; display_grid False: each on its model's own grid

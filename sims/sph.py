@@ -27,12 +27,12 @@ texture rectangle). The velocity then comes from the clamped displacement, so th
 wall is removed and the tangential part kept (a free-slip, inelastic wall). It is a compile-time switch
 (ti.static): with walls off the kernels are exactly the ones without this feature.
 """
-import functools
 import math
 
 import numpy as np
 import taichi as ti
 
+from sims.film import ParticleSplat
 from sims.hashing import hash01
 
 
@@ -41,7 +41,6 @@ MAX_NEIGHBOURS = 48         # neighbours in range that one particle interacts wi
 MAX_CANDIDATES = 256        # particles one particle examines, at most (bounds the cost of dense clumps)
 MAX_SUCTION_TOOLS = 8
 MAX_RELAX_FRACTION = 0.5    # largest relaxation displacement per substep, in interaction radii
-SPLAT_SCALE = 1024          # fixed-point units of one particle in the splat grid (integer atomics: deterministic)
 WALL_MARGIN = 1e-3          # walls keep particles this far (texels) inside the border of a valid texel
 KEYS = ("spawned", "suctioned", "left_surface", "expired", "dropped_pool_full")
 
@@ -135,19 +134,15 @@ class Bleeding:
         self.alive_count = ti.field(ti.i32, ())
         self.suction_tools = ti.Vector.field(4, ti.f32, MAX_SUCTION_TOOLS)  # x, y, z (mm), radius (mm)
         self.suction_candidates = ti.field(ti.i32, ())
-        self.splat = ti.field(ti.i32, (height, width))
-        self.thickness = ti.field(ti.f32, (height, width))     # displayed film thickness, mm
-        self.fresh_thickness = ti.field(ti.f32, (height, width))  # this step's film only (blood area), mm
-        self.blur_tmp = ti.field(ti.f32, (height, width))
-        self.texel_area = ti.field(ti.f32, (height, width))
-        self.texel_area.from_numpy(np.where(surface.mask, surface.texel_area_mm2, 1.0).astype(np.float32))
+        self.splatter = ParticleSplat(surface)
+        self.film_shape, self.film_display, self.film_clot = (height, width), None, None  # the look's film (sims.film)
+        self.fresh_thickness = ti.field(ti.f32, (height, width))  # this step's film (blood area, state.npz), mm
         self.reset()
 
     def reset(self) -> None:
         """Empty the pool and zero the counters."""
         self.count, self.step_index = 0, 0
         self.counters.fill(0)
-        self.thickness.fill(0.0)
         self._spawn_budget, self._suction_budget = {}, 0.0
         self.pool_full_reported = False   # the pool was full when blood should have spawned
         self.pool_full_logged = False     # a front end has told the user
@@ -618,8 +613,8 @@ class Bleeding:
         return {"blood_thickness_mm": self.blood_thickness_mm(), **self.particle_arrays()}
 
     def blood_thickness_mm(self) -> np.ndarray:
-        """(H, W) film thickness (mm) of this step's particles, splatted as the display does (without its trails)."""
-        self._film(self.fresh_thickness, fade=0.0)
+        """(H, W) film thickness (mm) of this step's particles, splatted as the look does (sims.film)."""
+        self.fresh_film(self.fresh_thickness)
         return self.fresh_thickness.to_numpy()
 
     def take_warning(self) -> str | None:
@@ -631,58 +626,13 @@ class Bleeding:
                 "raise bleeding.capacity, or use bleeding.method: height_field, whose cost does not grow with the volume")
 
     def blood_area_mm2(self) -> float:
-        """Surface area (mm^2) of texels whose displayed film is at least a quarter of the rest thickness."""
-        self._film(self.fresh_thickness, fade=0.0)  # this step's blood only; the display keeps its fading trails
-        covered = self.fresh_thickness.to_numpy() >= 0.25 * self.params["film_thickness_mm"]
+        """Surface area (mm^2) of texels whose film is at least a quarter of the rest thickness."""
+        covered = self.blood_thickness_mm() >= 0.25 * self.params["film_thickness_mm"]
         return float(self.surface.texel_area_mm2[covered & self.surface.mask].sum(dtype=np.float64))
 
-    @functools.cached_property
-    def _median_texel_mm(self) -> tuple:
-        """Median texel length (mm) along columns and rows."""
-        mask = self.surface.mask
-        return tuple(float(np.median(np.linalg.norm(t[mask], axis=1))) for t in (self.surface.tangent_u, self.surface.tangent_v))
-
-    def update_display(self, fade: float) -> None:
-        """Splat particles, smooth over half the interaction radius, keep max(new, fade * old) in `thickness`."""
-        self._film(self.thickness, fade)
-
-    def _film(self, out, fade: float) -> None:
-        self.splat.fill(0)
-        if self.count:
-            self._splat(self.count)
-        reach_mm = 0.6 * self.params["interaction_radius_mm"]
-        radius = [max(1, min(int(round(reach_mm / texel_mm)), 64)) for texel_mm in self._median_texel_mm]
-        self._blur_and_fade(radius[0], radius[1], self.particle_volume_ml * 1e3 / SPLAT_SCALE, fade, out)
-
-    @ti.kernel
-    def _splat(self, n: ti.i32):
-        for i in range(n):
-            x = self.pos[i] - 0.5
-            c0 = ti.cast(ti.floor(x[0]), ti.i32)
-            r0 = ti.cast(ti.floor(x[1]), ti.i32)
-            fx, fy = x[0] - c0, x[1] - r0
-            for dr, dc in ti.static(ti.ndrange(2, 2)):
-                r, c = r0 + dr, c0 + dc
-                w = (fx if dc else 1.0 - fx) * (fy if dr else 1.0 - fy)
-                if 0 <= r < self.height and 0 <= c < self.width:
-                    ti.atomic_add(self.splat[r, c], ti.cast(w * SPLAT_SCALE + 0.5, ti.i32))
-
-    @ti.kernel
-    def _blur_and_fade(self, radius_x: ti.i32, radius_y: ti.i32, unit_mm3: ti.f32, fade: ti.f32, out: ti.template()):
-        """Separable tent filter of the splatted volume (radii in texels) -> thickness (mm) = volume / area."""
-        for r, c in self.blur_tmp:
-            total = 0
-            for k in range(-radius_x, radius_x + 1):
-                cc = ti.min(ti.max(c + k, 0), self.width - 1)
-                total += self.splat[r, cc] * (radius_x + 1 - ti.abs(k))
-            self.blur_tmp[r, c] = total * unit_mm3 / ((radius_x + 1) * (radius_x + 1))
-        for r, c in out:
-            total = 0.0
-            for k in range(-radius_y, radius_y + 1):
-                rr = ti.min(ti.max(r + k, 0), self.height - 1)
-                total += self.blur_tmp[rr, c] * (radius_y + 1 - ti.abs(k))
-            fresh = total / ((radius_y + 1) * (radius_y + 1) * self.texel_area[r, c])
-            out[r, c] = ti.max(fresh, fade * out[r, c])
+    def fresh_film(self, out) -> None:
+        """out (H, W) = the film (mm) of this step's particles: splatted and smoothed over 0.6 interaction radii."""
+        self.splatter.film(self.pos, self.count, self.particle_volume_ml * 1e3, 0.6 * self.params["interaction_radius_mm"], out)
 
 
 def auto_capacity(bleed_points: list, params: dict, duration_s: float) -> int:

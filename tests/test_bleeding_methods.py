@@ -44,14 +44,13 @@ def test_the_height_field_on_a_coarser_grid_is_shown_on_the_display_grid():
     """bleeding.grid_divisor 4: blood runs on 32^2 texels under a 128^2 display. Bleed points (display texels) land on
     the coarse texel under them, the displayed depth is the coarse depth read bilinearly (a convex combination: never
     deeper than the deepest coarse texel, and it holds the same volume), and the metrics come from the coarse grid."""
-    scene = bleeding_scene("height_field", "bleeding.grid_divisor=4", size=128)
+    scene = bleeding_scene("height_field", "bleeding.grid_divisor=4", "look.blood_trail_s=0", size=128)
     blood = scene.bleeding
-    assert blood.surface.size == 32 and blood.thickness.shape == (128, 128)
+    assert blood.surface.size == 32 and scene.film.trail.shape == (32, 32)
     for _ in range(40):
         scene.step()
-    scene.composite()
     depth = blood.depth_mm()
-    shown = blood.thickness.to_numpy()
+    shown = scene.film.resampler.array(scene.film.trail.to_numpy())  # what the look reads at display texels
     arrays = scene.state_arrays()
     assert arrays["blood_thickness_mm"].shape == arrays["blood_stain_mm"].shape == (128, 128)
     assert 0 < shown.max() <= depth.max() * (1 + 1e-6)

@@ -7,10 +7,15 @@ import pytest
 from sims.config import REPO_ROOT
 
 
-def full_pass(scene) -> np.ndarray:
+def full_pass(scene) -> list:
+    """Base colour, normal and roughness maps of a pass over every tile."""
     scene.display_tiles.select_all()
     heat = None if scene.cautery is None else scene.heat_display
-    return scene.composer.compose(scene.display_tiles, heat, scene.bleeding)
+    return [scene.composer.compose(scene.display_tiles, heat, scene.film), *scene.composer.maps()]
+
+
+def shown_maps(scene) -> list:
+    return [scene.composite(), *scene.material_maps()]
 
 
 HOT_GLOW = ("look.stages=[{name: healthy, texture: textures/liver_healthy.png}, {name: glow, texture: "
@@ -28,12 +33,13 @@ def test_recomposing_the_changed_tiles_shows_what_a_full_pass_shows(divisor, loo
     for _ in range(12):
         for _ in range(25):
             scene.step()
-        shown = scene.composite()
+        shown = shown_maps(scene)
         recomposed.append(scene.display_tiles.listed)
-        assert np.array_equal(shown, full_pass(scene)), f"t = {scene.time_s:.2f} s"
+        for name, partial, full in zip(("colour", "normal", "roughness"), shown, full_pass(scene)):
+            assert np.array_equal(partial, full), f"{name} at t = {scene.time_s:.2f} s"
     tiles = scene.display_tiles.tiles
     assert 0 < max(recomposed) and min(recomposed) < tiles  # partial passes happened, and the burn was recomposed
-    assert not np.array_equal(shown, start)  # the burn shows
+    assert not np.array_equal(shown[0], start)  # the burn shows
     scene.reset()
     assert np.array_equal(scene.composite(), start), "after a reset the look is the look at t = 0"
     assert scene.display_tiles.listed == tiles

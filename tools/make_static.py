@@ -7,7 +7,7 @@ Conventions
 -----------
 * Lengths are millimetres, z is up.
 * Textures are 1024x1024 RGB PNGs that tile seamlessly (every noise field is
-  periodic on the tile).  The three tissue states share the same noise fields
+  periodic on the tile).  The tissue states share the same noise fields
   and vessel layout, so blending between them reads as one tissue changing.
 * OBJ ``vt`` follows the OBJ/OpenGL convention: v=0 is the BOTTOM row of the
   image, i.e. image row = (1 - v) * height.
@@ -31,9 +31,17 @@ STATIC = ROOT / "static"
 TEX_SIZE = 1024
 SEED = 20240611
 
-LIVER_HEALTHY_RGB = (120.0, 35.0, 30.0)
-LIVER_COAGULATED_RGB = (205.0, 190.0, 180.0)
-LIVER_CHARRED_RGB = (40.0, 26.0, 18.0)
+# Mean sRGB of each tissue state. Native liver: "liver" (108, 46, 31) (DESIGN section 7, a weak source). No measured
+# colour of coagulated liver was found; the coagulum takes the CIELAB of cooked pork (Jang et al. 2019, Food Sci Anim
+# Resour 39:756, table 5): the pale crest at the margin the interior cooked medium (L* 66.4, a* 11.0, b* 11.5), the
+# coagulum well done (57.4, 7.7, 12.6), a deep burn the well-done surface (49.9, 6.9, 15.1). The hyperaemic rim (the
+# "red zone" of ablation pathology, Ng et al. 2005, Radiology 235:478) and char are chosen by eye.
+LIVER_HEALTHY_RGB = (108.0, 46.0, 31.0)
+LIVER_HYPERAEMIC_RGB = (128.0, 32.0, 33.0)
+LIVER_PALE_RGB = (189.0, 154.0, 141.0)
+LIVER_COAGULATED_RGB = (159.0, 133.0, 116.0)
+LIVER_BROWNED_RGB = (139.0, 114.0, 93.0)
+LIVER_CHARRED_RGB = (33.0, 23.0, 17.0)
 
 
 # --------------------------------------------------------------------------
@@ -167,7 +175,7 @@ def rasterise_vessels(segments: np.ndarray, n: int) -> np.ndarray:
 # --------------------------------------------------------------------------
 
 def tissue_fields(n: int, seed: int) -> dict[str, np.ndarray]:
-    """Shared (n, n) fields that all three tissue states are built from.
+    """Shared (n, n) fields that every tissue state is built from.
 
     Keys: 'large', 'mid', 'fine', 'grain' (fBm bands, std ~1), 'hue' (slow
     colour drift), 'gloss' (0..1 soft sheen), 'lobule_edge' / 'lobule_centre'
@@ -199,13 +207,15 @@ def tissue_fields(n: int, seed: int) -> dict[str, np.ndarray]:
 
     f["blotch"] = smoothstep(-2.2, 2.2, 0.6 * f["large"] + 0.8 * f["mid"]
                              + 0.45 * band_noise(rng, n, 20.0, 60.0, 0.5))
-    cx = 10.0 * band_noise(rng, n, 4.0, 16.0, 1.0)
-    cy = 10.0 * band_noise(rng, n, 4.0, 16.0, 1.0)
-    _, crack_gap = hex_cells(rng, n, cols=14, jitter=0.35, dx=cx, dy=cy)
-    crack_on = smoothstep(-0.8, 0.2, band_noise(rng, n, 3.0, 10.0, 1.0))
-    cracks = (1.0 - smoothstep(0.01, 0.05, crack_gap)) * crack_on
+    cx = 2.5 * band_noise(rng, n, 16.0, 60.0, 1.0)
+    cy = 2.5 * band_noise(rng, n, 16.0, 60.0, 1.0)
+    # a crackle of crust plates about 1.2 mm across (48 cells over the 60 mm patch), drawn 2-3 texels wide: a few
+    # long 1-texel lines of larger cells read as stray diagonal strokes across a small char spot
+    _, crack_gap = hex_cells(rng, n, cols=48, jitter=0.35, dx=cx, dy=cy)
+    crack_on = smoothstep(-1.2, 0.0, band_noise(rng, n, 3.0, 10.0, 1.0))
+    cracks = (1.0 - smoothstep(0.04, 0.12, crack_gap)) * crack_on
     f["cracks"] = cracks
-    f["crack_rim"] = np.clip(periodic_blur(cracks, 2.5) * 2.5 - cracks, 0.0, 1.0)
+    f["crack_rim"] = np.clip(periodic_blur(cracks, 2.0) * 2.0 - cracks, 0.0, 1.0)
     specks = band_noise(rng, n, 150.0, 400.0, 0.0) + 0.5 * f["fine"]
     f["ash"] = smoothstep(2.9, 3.8, specks) * smoothstep(-0.5, 0.8, f["mid"])
     return f
@@ -228,51 +238,95 @@ def finish(img: np.ndarray, target: tuple[float, float, float]) -> np.ndarray:
 
 
 def healthy_liver(f: dict[str, np.ndarray]) -> np.ndarray:
-    """Fresh liver: maroon-brown capsule, mottled, lobules, red vessels."""
+    """Fresh liver: red-brown capsule, mottled, lobules, darker vessels (the sheen is the renderer's: no highlight
+    baked in)."""
     n = f["large"].shape[0]
     hue = smoothstep(-2.0, 2.0, f["hue"])
-    base = mix(rgb((106, 30, 38), n), rgb((118, 38, 31), n), hue)
+    base = mix(rgb((100, 40, 36), n), rgb((114, 50, 28), n), hue)
     tone = (1.0 + 0.05 * f["large"] + 0.05 * f["mid"] + 0.035 * f["fine"]
-            + 0.03 * f["grain"] + 0.07 * f["lobule_edge"] - 0.09 * f["lobule_centre"])
+            + 0.03 * f["grain"] + 0.08 * f["lobule_edge"] - 0.10 * f["lobule_centre"])
     img = base * tone[..., None]
-    img = mix(img, rgb((78, 18, 36), n), 0.35 * f["vessel_halo"])
-    img = mix(img, rgb((84, 8, 24), n), 0.75 * f["vessel"])
-    sheen = f["gloss"] * (0.8 + 0.2 * smoothstep(-1.0, 1.0, f["fine"]))
-    return finish(mix(img, rgb((150, 70, 68), n), 0.18 * sheen), LIVER_HEALTHY_RGB)
+    img = mix(img, rgb((80, 24, 32), n), 0.35 * f["vessel_halo"])
+    img = mix(img, rgb((78, 12, 24), n), 0.75 * f["vessel"])
+    return finish(img, LIVER_HEALTHY_RGB)
 
 
-def coagulated_liver(f: dict[str, np.ndarray]) -> np.ndarray:
-    """Thermally coagulated liver: pale grey-tan, mottled, ghost vessels."""
+def hyperaemic_liver(f: dict[str, np.ndarray]) -> np.ndarray:
+    """The congested rim around a burn: redder, vessels and lobule borders filled with blood."""
+    n = f["large"].shape[0]
+    tone = 1.0 + 0.06 * f["mid"] + 0.04 * f["fine"] + 0.10 * f["lobule_edge"] - 0.06 * f["lobule_centre"]
+    img = rgb((128, 32, 33), n) * tone[..., None]
+    img = mix(img, rgb((100, 14, 26), n), 0.5 * f["vessel_halo"] + 0.3 * f["lobule_edge"])
+    return finish(img, LIVER_HYPERAEMIC_RGB)
+
+
+def cooked_liver(f: dict[str, np.ndarray], target: tuple[float, float, float], mottle: float) -> np.ndarray:
+    """Coagulated liver of mean colour target: grey-tan, mottled by `mottle`, ghost lobules and vessels."""
     n = f["large"].shape[0]
     hue = smoothstep(-2.0, 2.0, f["hue"] + 0.6 * f["mid"])
-    base = mix(rgb((204, 191, 182), n), rgb((210, 190, 174), n), hue)
-    tone = (1.0 + 0.03 * f["large"] + 0.03 * f["mid"] + 0.025 * f["fine"]
-            + 0.02 * f["grain"] + 0.04 * f["lobule_edge"] - 0.08 * f["lobule_centre"])
+    base = mix(rgb(target, n) * (1.02, 0.99, 0.97), rgb(target, n) * (0.97, 1.0, 1.04), hue)
+    tone = (1.0 + mottle * (f["large"] + f["mid"]) + 0.03 * f["fine"] + 0.02 * f["grain"]
+            + 0.04 * f["lobule_edge"] - 0.07 * f["lobule_centre"])
     img = base * tone[..., None]
-    img = mix(img, rgb((178, 160, 148), n), 0.30 * f["vessel"] + 0.15 * f["vessel_halo"])
-    return finish(img, LIVER_COAGULATED_RGB)
+    img = mix(img, rgb(target, n) * (0.86, 0.82, 0.8), 0.30 * f["vessel"] + 0.15 * f["vessel_halo"])
+    img = mix(img, rgb(target, n) * (0.9, 0.78, 0.74), 0.35 * f["blotch"] ** 2)  # reddish-brown patches
+    return finish(img, target)
 
 
 def charred_liver(f: dict[str, np.ndarray]) -> np.ndarray:
-    """Carbonised tissue: blotchy black-brown, dark cracks, pale ash specks."""
+    """Carbonised tissue: blotchy black-brown crust, black cracks with brown rims, pale ash specks."""
     n = f["large"].shape[0]
-    img = mix(rgb((12, 9, 7), n), rgb((62, 40, 27), n), f["blotch"])
+    img = mix(rgb((10, 8, 6), n), rgb((58, 38, 26), n), f["blotch"])
     tone = 1.0 + 0.10 * f["fine"] + 0.06 * f["grain"] - 0.10 * f["lobule_centre"]
     img = img * tone[..., None]
     img = img * (1.0 - 0.25 * f["vessel_halo"])[..., None]
-    img = mix(img, rgb((78, 54, 38), n), 0.35 * f["crack_rim"])
-    img = mix(img, rgb((4, 3, 2), n), 0.9 * f["cracks"])
-    return finish(mix(img, rgb((150, 140, 128), n), 0.8 * f["ash"]), LIVER_CHARRED_RGB)
+    img = mix(img, rgb((74, 50, 34), n), 0.35 * f["crack_rim"])
+    img = mix(img, rgb((3, 2, 2), n), 0.95 * f["cracks"])
+    return finish(mix(img, rgb((140, 130, 118), n), 0.7 * f["ash"]), LIVER_CHARRED_RGB)
+
+
+def surface_map(height: np.ndarray, roughness: np.ndarray) -> np.ndarray:
+    """(n, n, 3) uint8 surface map of the look (sims.compose): red the height rescaled to 0-1, green the roughness."""
+    h = (height - height.min()) / max(float(np.ptp(height)), 1e-9)
+    out = np.zeros(height.shape + (3,))
+    out[..., 0], out[..., 1] = h, np.clip(roughness, 0.0, 1.0)
+    return np.clip(np.rint(out * 255.0), 0, 255).astype(np.uint8)
+
+
+def healthy_surface(f: dict[str, np.ndarray]) -> np.ndarray:
+    """Capsule: lobules bulge slightly between their borders, vessels run in shallow ridges, fine grain; wet and glossy
+    (roughness 0.25-0.4, lowest where the gloss field is)."""
+    height = (0.6 * f["lobule_centre"] - 0.8 * f["lobule_edge"] + 0.5 * f["vessel_halo"]
+              + 0.12 * f["fine"] + 0.06 * f["grain"])
+    return surface_map(height, 0.4 - 0.15 * f["gloss"] + 0.02 * f["fine"])
+
+
+def coagulated_surface(f: dict[str, np.ndarray]) -> np.ndarray:
+    """Coagulum: mottled, puckered around the lobule centres; drier (roughness 0.5-0.65)."""
+    height = 0.5 * f["mid"] + 0.3 * f["fine"] + 0.1 * f["grain"] - 0.6 * f["lobule_centre"]
+    return surface_map(height, 0.57 + 0.04 * f["mid"] + 0.02 * f["grain"])
+
+
+def charred_surface(f: dict[str, np.ndarray]) -> np.ndarray:
+    """Char: a crust raised in blotches, cut by deep cracks; matte (roughness 0.85-0.95)."""
+    height = 1.2 * f["blotch"] + 0.25 * f["fine"] + 0.1 * f["grain"] - 1.5 * f["cracks"] - 0.4 * f["crack_rim"]
+    return surface_map(height, 0.9 + 0.03 * f["fine"])
 
 
 def make_textures(out_dir: Path) -> list[Path]:
-    """Write the three liver textures (1024x1024 RGB PNG); return paths."""
+    """Write the liver's colour textures and surface maps (1024x1024 RGB PNG); return paths."""
     out_dir.mkdir(parents=True, exist_ok=True)
     fields = tissue_fields(TEX_SIZE, SEED)
     paths = []
     for name, build in (("liver_healthy", healthy_liver),
-                        ("liver_coagulated", coagulated_liver),
-                        ("liver_charred", charred_liver)):
+                        ("liver_hyperaemic", hyperaemic_liver),
+                        ("liver_pale", lambda f: cooked_liver(f, LIVER_PALE_RGB, 0.025)),
+                        ("liver_coagulated", lambda f: cooked_liver(f, LIVER_COAGULATED_RGB, 0.035)),
+                        ("liver_browned", lambda f: cooked_liver(f, LIVER_BROWNED_RGB, 0.045)),
+                        ("liver_charred", charred_liver),
+                        ("liver_healthy_surface", healthy_surface),
+                        ("liver_coagulated_surface", coagulated_surface),
+                        ("liver_charred_surface", charred_surface)):
         path = out_dir / f"{name}.png"
         Image.fromarray(build(fields), "RGB").save(path, optimize=True)
         paths.append(path)

@@ -1,0 +1,130 @@
+"""The blood film the look shows, kept on simulated time, and the particles' splat that makes a film of particles.
+
+Every step a bleeding method writes the film it has now (mm, on its own grid: the height field's depth, the particles'
+splat) and the look keeps, per texel of that grid,
+
+    trail = max(fresh, exp(-dt / blood_trail_s) * trail)      (traces of moving blood linger about blood_trail_s)
+    stain = max(stain, fresh)                                  (the deepest blood ever there: a dried stain stays)
+
+so what a picture shows depends on the simulated time only, never on how often a front end asks for one. The composer
+(sims.compose) reads trail, stain and the method's clot fraction at display texels through sample(): bilinearly
+(sims.resample) when the method runs on a coarser grid.
+"""
+import math
+
+import numpy as np
+import taichi as ti
+
+SPLAT_SCALE = 1024  # fixed-point units of one particle in the splat grid (integer atomics: deterministic)
+MAX_FILTER_TEXELS = 64
+
+
+@ti.data_oriented
+class ParticleSplat:
+    """Film thickness (mm) of a particle pool on its texel grid: every particle's volume splatted bilinearly in fixed
+    point (integer atomics: the same bits on any thread count), a separable tent filter of `reach_mm`, divided by the
+    texel's area."""
+
+    def __init__(self, surface):
+        self.height, self.width = surface.mask.shape
+        shape = (self.height, self.width)
+        self.splat = ti.field(ti.i32, shape)
+        self.blur_tmp = ti.field(ti.f32, shape)
+        self.texel_area = ti.field(ti.f32, shape)
+        self.texel_area.from_numpy(np.where(surface.mask, surface.texel_area_mm2, 1.0).astype(np.float32))
+        mask = surface.mask
+        self.median_texel_mm = tuple(float(np.median(np.linalg.norm(t[mask], axis=1))) if mask.any() else 1.0
+                                     for t in (surface.tangent_u, surface.tangent_v))  # along columns, rows
+
+    def film(self, pos, count: int, particle_mm3: float, reach_mm: float, out) -> None:
+        """out (H, W) = film thickness (mm) of the first `count` particles at grid positions pos (x = column + 0.5,
+        y = row + 0.5), each carrying particle_mm3."""
+        self.splat.fill(0)
+        if count:
+            self._splat(pos, count)
+        radius = [max(1, min(int(round(reach_mm / texel_mm)), MAX_FILTER_TEXELS)) for texel_mm in self.median_texel_mm]
+        self._blur(radius[0], radius[1], particle_mm3 / SPLAT_SCALE, out)
+
+    @ti.kernel
+    def _splat(self, pos: ti.template(), n: ti.i32):
+        for i in range(n):
+            x = pos[i] - 0.5
+            c0 = ti.cast(ti.floor(x[0]), ti.i32)
+            r0 = ti.cast(ti.floor(x[1]), ti.i32)
+            fx, fy = x[0] - c0, x[1] - r0
+            for dr, dc in ti.static(ti.ndrange(2, 2)):
+                r, c = r0 + dr, c0 + dc
+                w = (fx if dc else 1.0 - fx) * (fy if dr else 1.0 - fy)
+                if 0 <= r < self.height and 0 <= c < self.width:
+                    ti.atomic_add(self.splat[r, c], ti.cast(w * SPLAT_SCALE + 0.5, ti.i32))
+
+    @ti.kernel
+    def _blur(self, radius_x: ti.i32, radius_y: ti.i32, unit_mm3: ti.f32, out: ti.template()):
+        for r, c in self.blur_tmp:
+            total = 0
+            for k in range(-radius_x, radius_x + 1):
+                cc = ti.min(ti.max(c + k, 0), self.width - 1)
+                total += self.splat[r, cc] * (radius_x + 1 - ti.abs(k))
+            self.blur_tmp[r, c] = total * unit_mm3 / ((radius_x + 1) * (radius_x + 1))
+        for r, c in out:
+            total = 0.0
+            for k in range(-radius_y, radius_y + 1):
+                rr = ti.min(ti.max(r + k, 0), self.height - 1)
+                total += self.blur_tmp[rr, c] * (radius_y + 1 - ti.abs(k))
+            out[r, c] = total / ((radius_y + 1) * (radius_y + 1) * self.texel_area[r, c])
+
+
+@ti.data_oriented
+class BloodFilm:
+    """A bleeding method's film as the look shows it (module docstring). bleeding: a sims.models.BleedingMethod, whose
+    fresh_film(out) writes its film (mm) on film_shape and whose film_display is the GridResampler onto the display
+    (None: its grid is the display's); clot: its clot fraction field on that grid, or None."""
+
+    def __init__(self, bleeding):
+        self.bleeding = bleeding
+        shape = tuple(bleeding.film_shape)
+        self.resampler = bleeding.film_display
+        self.clot = bleeding.film_clot
+        self.same_grid, self.has_clot = self.resampler is None, self.clot is not None
+        self.fresh = ti.field(ti.f32, shape)
+        self.trail = ti.field(ti.f32, shape)  # mm
+        self.stain = ti.field(ti.f32, shape)  # mm
+        self.reset()
+
+    def reset(self) -> None:
+        self.trail.fill(0.0)
+        self.stain.fill(0.0)
+
+    def advance(self, dt_s: float, trail_s: float) -> None:
+        """After a step of dt_s: take the method's film and keep the trail and the stain."""
+        self.bleeding.fresh_film(self.fresh)
+        self._keep(math.exp(-dt_s / trail_s) if trail_s > 0 else 0.0)
+
+    @ti.kernel
+    def _keep(self, decay: ti.f32):
+        for r, c in self.fresh:
+            fresh = self.fresh[r, c]
+            self.trail[r, c] = ti.max(fresh, decay * self.trail[r, c])
+            self.stain[r, c] = ti.max(self.stain[r, c], fresh)
+
+    @ti.func
+    def sample(self, field: ti.template(), r, c):
+        """A field of the film's grid at display texel (r, c)."""
+        value = 0.0
+        if ti.static(self.same_grid):
+            value = field[r, c]
+        else:
+            value = self.resampler.sample(field, r, c)
+        return value
+
+    @ti.func
+    def clot_at(self, r, c):
+        """Clot fraction (0-1) at display texel (r, c); 0 for a method that keeps none on a grid."""
+        value = 0.0
+        if ti.static(self.has_clot):
+            value = self.sample(self.clot, r, c)
+        return value
+
+    def arrays(self) -> dict:
+        """(H, W) trail and stain on the film's grid, mm."""
+        return {"trail": self.trail.to_numpy(), "stain": self.stain.to_numpy()}

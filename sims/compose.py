@@ -14,12 +14,12 @@ its reflectance per colour channel is the Kubelka-Munk layer over the tissue's r
     R = (t (1 - R_g a) + R_g b) / (t (a - R_g) + b),  a = 1 + K/S, b = sqrt(a^2 - 1), t = tanh(b S h),
 
 with absorption K = 2 mu_a (Beer-Lambert's coefficient for diffuse light) and scattering S = 3/4 mu_s' of whole
-blood (haematocrit 45 %). Green and blue take 550 and 450 nm (Bosschaart et al. 2014, Lasers Med Sci 29:453,
-appendix: mu_a oxygenated 23.9 / 31.8, deoxygenated 26.0 / 40.3, mu_s' 2.6 / 4.3 per mm); red, whose channel spans
-about 580-700 nm, takes the mean of 600 nm (1.7 oxygenated, 7.9 deoxygenated: Prahl's haemoglobin extinction, DESIGN
-section 7) and 650 nm (0.16, 1.80: Bosschaart), mu_s' 1.5 per mm. A thin layer shows the tissue through it, a deep
-one tends to blood's own colour (a - b): 0.05 mm hides most green and blue, red passes through millimetres, and a
-pool is darker than a film over pale tissue. Fresh blood is FRESH_SATURATION oxygenated, clotted blood CLOT_SATURATION (darker). Where blood
+blood (haematocrit 45 %) at 650, 550 and 450 nm for red, green and blue (Bosschaart et al. 2014, Lasers Med Sci
+29:453, appendix: mu_a oxygenated 0.16 / 23.9 / 31.8, deoxygenated 1.80 / 26.0 / 40.3, mu_s' 1.5 / 2.6 / 4.3 per mm;
+the red channel's short end near 600 nm, which absorbs about ten times more, is left out). A thin layer shows the
+tissue through it, a deep one tends to blood's own colour (a - b): 0.05 mm hides most green and blue, red passes
+through millimetres. Clotted blood at rest loses its oxygen and darkens, so a pool that has settled is dark red and
+fresh running blood bright. Fresh blood is FRESH_SATURATION oxygenated, clotted blood CLOT_SATURATION (darker). Where blood
 has been (the film's stain) the tissue keeps a brown-red dried stain (STAIN_TRANSMITTANCE: chosen, no measurement
 found). The blood's thickness is part of the surface height (a pool's edge is raised and rounded; a pool deeper than
 POOL_LEVEL_MM hides the tissue's relief) and wet blood is glossy. The normal map is the slope of that height; the
@@ -33,8 +33,8 @@ import taichi as ti
 from PIL import Image
 
 FIELD_CODES = {"coagulation": 0, "char": 1, "omega": 2, "temperature_c": 3, "coagulation_depth_mm": 4}
-BLOOD_MU_A_OXY = (0.93, 23.9, 31.8)     # 1/mm, red (mean of 600 and 650 nm) / green (550) / blue (450): docstring
-BLOOD_MU_A_DEOXY = (4.85, 26.0, 40.3)   # 1/mm
+BLOOD_MU_A_OXY = (0.16, 23.9, 31.8)     # 1/mm, red / green / blue = 650 / 550 / 450 nm (module docstring)
+BLOOD_MU_A_DEOXY = (1.80, 26.0, 40.3)   # 1/mm
 BLOOD_MU_S_REDUCED = (1.5, 2.6, 4.3)    # 1/mm
 FRESH_SATURATION = 0.85                 # oxygen saturation of fresh surgical blood (arterial and venous mixed)
 CLOT_SATURATION = 0.3                   # of clotted blood at rest

@@ -1,5 +1,6 @@
 """The browser front end in real headless Chromium: the real lab (lab.app.LabApp) streaming the tissue texture
-(lab.stream.TextureStream); below them, tests of the stream's bookkeeping and its GLBs without a browser.
+(lab.stream.TextureStream), and a TextureStream alone on a plane with material maps. The stream's bookkeeping and its
+GLBs without a browser: tests/test_stream_glb.py.
 
 For the browser tests, one LabApp for the module on a test scene (the liver patch at 256^2 texels with one ball
 electrode that has no scripted path), with a flat blue background, so that a hole in the mesh (a tile missing from a
@@ -401,290 +402,100 @@ def test_second_client_keeps_streaming_after_the_first_leaves(lab, page, tmp_pat
     _check_loop(lab)
 
 
-# --- the stream without a browser -------------------------------------------------------------
+# --- a TextureStream alone: material maps in the browser ------------------------------------------
 
-def _bumpy_patch(cells: int = 24):
-    """A 60 x 40 mm patch with bumps (normals vary), UVs over [0, 1]^2, as TextureStream wants it."""
+SUN_POSITION_MM = (0.0, 40.0, 60.0)   # one directional light, from +y (the plane's +v) and above
+
+
+def _material_plane():
+    """A flat 40 x 40 mm plane in z = 0, u along +x and v along +y (so +v, "up" in the normal map, is +y)."""
     from types import SimpleNamespace
 
     from tests.helpers import plane_mesh
 
-    mesh = plane_mesh(60.0, 40.0, cells=cells)
-    vertices = np.asarray(mesh.vertices, np.float64).copy()
-    vertices[:, 2] = 3.0 * np.sin(vertices[:, 0] / 7.0) * np.cos(vertices[:, 1] / 5.0)
-    return SimpleNamespace(vertices_mm=vertices.astype(np.float32), faces=np.asarray(mesh.faces, np.int32),
+    mesh = plane_mesh(40.0, 40.0, cells=16)
+    return SimpleNamespace(vertices_mm=np.asarray(mesh.vertices, np.float32), faces=np.asarray(mesh.faces, np.int32),
                            uv=np.asarray(mesh.visual.uv, np.float32))
 
 
-class _Recorder:
-    """Wraps the add_glb of the connected clients' scenes (the stream sends each browser its own tile nodes) to keep
-    what the stream sends."""
-
-    def __init__(self, server):
-        self.sent = []
-        for client in server.get_clients().values():
-            original = client.scene.add_glb
-
-            def add_glb(name, glb_data, _original=original, **kwargs):
-                self.sent.append((name, glb_data))
-                return _original(name, glb_data, **kwargs)
-
-            client.scene.add_glb = add_glb
+def _normal_map(direction, size: int) -> np.ndarray:
+    """A uniform tangent-space normal map (x = +u, y = +v, z out) in glTF's encoding."""
+    normal = np.asarray(direction, np.float64) / np.linalg.norm(direction)
+    return np.broadcast_to(np.rint(normal * 127.5 + 127.5).astype(np.uint8), (size, size, 3)).copy()
 
 
-@pytest.fixture
-def server():
-    """A viser server with one connected client (a raw websocket client that answers as a browser does)."""
+@needs_chromium
+def test_the_normal_and_roughness_maps_of_the_tiles_reach_the_shader(chromium, tmp_path):
+    """A plane under one light from +v and above: a normal map tilted toward +v (G above 128) turns it to the light
+    and draws it brighter than a flat one, tilted toward -v darker; a low roughness where the plane mirrors the light
+    into the camera draws a highlight that a high roughness does not; no page errors."""
     import viser
 
-    from tests.raw_client import RawClient
+    from lab.stream import TextureStream, camera_for, set_initial_camera
 
-    instance = viser.ViserServer(host="127.0.0.1", port=browser.free_port(), verbose=False)
-    client = RawClient(instance.get_port())
-    deadline = time.monotonic() + 30
-    while not instance.get_clients() and time.monotonic() < deadline:
-        time.sleep(0.05)
-    assert instance.get_clients(), "the raw client did not connect"
-    yield instance
-    client.close()
-    instance.stop()
+    surface = _material_plane()
+    server = viser.ViserServer(host="127.0.0.1", port=browser.free_port(), verbose=False)
+    server.scene.set_background_image(np.full((4, 4, 3), BACKGROUND, np.uint8), format="png")
+    server.scene.configure_environment_map(None)
+    server.scene.configure_default_lights(enabled=False)
+    server.scene.add_light_directional("/sun", color=(255, 255, 255), intensity=2.5, position=SUN_POSITION_MM)
+    set_initial_camera(server, surface)
+    stream = TextureStream(server, surface, tiles=2, hide_after_s=0.2)
+    size = 64
+    rgb = np.full((size, size, 3), 170, np.uint8)
+    matte, glossy = np.full((size, size), 200, np.uint8), np.full((size, size), 25, np.uint8)
+    # the normal that mirrors the light into a camera straight above: halfway between the two directions
+    camera, look_at = camera_for(surface)
+    halfway = np.asarray(SUN_POSITION_MM) / np.linalg.norm(SUN_POSITION_MM) + (camera - look_at) / np.linalg.norm(camera - look_at)
+    viewer = None
+    try:
+        stream.update(rgb, normal=_normal_map((0, 0, 1), size), roughness=matte)
+        viewer = chromium.submit(lambda instance: browser.Viewer(instance, f"http://127.0.0.1:{server.get_port()}/{PAGE_QUERY}",
+                                                                viewport=VIEWPORT)).result(timeout=OPEN_TIMEOUT_S)
+        deadline = time.monotonic() + OPEN_TIMEOUT_S
+        while not server.get_clients():
+            assert time.monotonic() < deadline, "the page did not connect"
+            time.sleep(0.05)
+        (client_id,) = server.get_clients()
+        console = []  # the tiles reach the page from the next update on: every message about them is kept
 
+        def listen(_):
+            viewer.page.on("console", lambda message: console.append((message.type, message.text)))
+            viewer.page.get_by_label("Minimize panel").first.click(timeout=OPEN_TIMEOUT_S * 1000)
 
-def _applied(server, stream, timeout_s: float = 10.0) -> None:
-    """Wait until every client has applied every tile node queued to it so far (a tile is replaced for a client only
-    once it has applied the tile's current node)."""
-    mark, deadline = stream.sync.mark(), time.monotonic() + timeout_s
-    while not all(stream.sync.positions(client_id)[0] >= mark for client_id in server.get_clients()):
-        assert time.monotonic() < deadline, "the client did not apply its tiles"
-        time.sleep(0.02)
+        chromium.submit(listen).result()
+        height, width = VIEWPORT["height"], VIEWPORT["width"]
+        middle = (slice(int(height * 0.3), int(height * 0.7)), slice(int(width * 0.35), int(width * 0.65)))
 
+        def shown(normal, roughness, name) -> np.ndarray:
+            """The middle of the view once the page has drawn every tile with these maps and no older tile is left."""
+            stream.update(rgb, normal=normal, roughness=roughness)
+            mark, deadline = stream.sync.mark(), time.monotonic() + WAIT_TIMEOUT_S
+            while stream.sync.confirmed_by(client_id) < mark or stream.pending_removals or stream.client_stats(client_id)["nodes"] < 4:
+                assert time.monotonic() < deadline, f"the page did not draw the {name} tiles ({stream.client_stats(client_id)})"
+                time.sleep(0.05)
+                stream.update(rgb, normal=normal, roughness=roughness)
+            image = chromium.submit(lambda _: viewer.screenshot()).result()
+            browser.save(image, tmp_path / f"{name}.png")
+            assert not (np.abs(image[middle].astype(int) - BACKGROUND).max(axis=-1) < 30).any(), f"the plane does not fill the middle; see {tmp_path}"
+            return image[middle].astype(np.float64)
 
-def _glb_parts(glb: bytes):
-    import json
-    import struct
-
-    magic, version, total = struct.unpack_from("<4sII", glb, 0)
-    assert magic == b"glTF" and version == 2 and total == len(glb)
-    json_length, _ = struct.unpack_from("<I4s", glb, 12)
-    document = json.loads(glb[20:20 + json_length])
-    binary_length, kind = struct.unpack_from("<I4s", glb, 20 + json_length)
-    assert kind == b"BIN\x00"
-    return document, glb[28 + json_length:28 + json_length + binary_length]
-
-
-def _accessor(document, binary, index):
-    formats = {5126: np.float32, 5123: np.uint16, 5125: np.uint32}
-    sizes = {"SCALAR": 1, "VEC2": 2, "VEC3": 3}
-    accessor = document["accessors"][index]
-    view = document["bufferViews"][accessor["bufferView"]]
-    data = np.frombuffer(binary, formats[accessor["componentType"]], accessor["count"] * sizes[accessor["type"]], view["byteOffset"])
-    return data.reshape(accessor["count"], sizes[accessor["type"]])
-
-
-def test_stream_sends_only_changed_tiles_and_removes_replaced_nodes_later(server):
-    from lab.stream import TextureStream
-
-    recorder = _Recorder(server)
-    stream = TextureStream(server, _bumpy_patch(), tiles=4, hide_after_s=0.3)
-    image = np.full((64, 64, 3), 120, np.uint8)
-    first = stream.update(image)
-    assert first["tiles_sent"] == 16 and first["bytes"] == sum(len(glb) for _, glb in recorder.sent)
-    assert stream.update(image)["tiles_sent"] == 0
-    _applied(server, stream)
-    image[40:44, 10:14] = 255  # inside one tile, far from its borders
-    assert stream.update(image)["tiles_sent"] == 1
-    assert stream.node_count == 17  # the replaced node stays under the new one for now
-    time.sleep(0.35)
-    deadline = time.monotonic() + 10  # and goes once the client confirmed its successor (a few 0.2 s round trips)
-    while stream.node_count > 16 and time.monotonic() < deadline:
-        time.sleep(0.05)
-        stream.update(image)
-    assert stream.node_count == 16
-    image[40:44, 10:14] = 0
-    stream.update(image)
-    assert len(recorder.sent) == 18 and len({name for name, _ in recorder.sent}) == 17, "the removed node's name is used again"
-    stream.close()
-    assert stream.update(image)["tiles_sent"] == 0
-
-
-def test_stream_rate_limit_defers_changed_tiles_and_sends_their_newest_crop(server):
-    import io
-
-    from PIL import Image
-
-    from lab.stream import TextureStream
-
-    recorder = _Recorder(server)
-    stream = TextureStream(server, _bumpy_patch(), tiles=4, max_tiles_per_s=10.0)
-    image = np.zeros((64, 64, 3), np.uint8)
-    stream.update(image)  # the first texture goes whole, whatever the limit
-    _applied(server, stream)
-    sent, deferred, started = 0, 0, time.monotonic()
-    for value in range(1, 30):
-        image[:] = value  # every tile changes on every update
-        result = stream.update(image)
-        sent += result["tiles_sent"]
-        deferred += result["tiles_deferred"]
-        time.sleep(0.02)
-    assert deferred > 0 and sent <= 10.0 * (time.monotonic() - started) + 6  # the rate, plus half a second's burst
-    newest = {}
-
-    def every_tile_newest():
-        newest.clear()
-        for name, glb in recorder.sent[16:]:
-            document, binary = _glb_parts(glb)
-            view = document["bufferViews"][document["images"][0]["bufferView"]]
-            crop = np.asarray(Image.open(io.BytesIO(binary[view["byteOffset"]:view["byteOffset"] + view["byteLength"]])))
-            newest[document["accessors"][0]["min"][0], document["accessors"][0]["min"][1]] = crop
-        return len(newest) == 16 and all((crop == 29).all() for crop in newest.values())
-
-    deadline = time.monotonic() + 20
-    while time.monotonic() < deadline:  # nothing changes any more: the deferred tiles catch up
-        stream.update(image)
-        if every_tile_newest():
-            break
-        time.sleep(0.1)
-    assert every_tile_newest(), "every tile ends with the newest texture"
-    stream.close()
-
-
-def _sent_image(glb: bytes) -> np.ndarray:
-    import io
-
-    from PIL import Image
-
-    document, binary = _glb_parts(glb)
-    view = document["bufferViews"][document["images"][0]["bufferView"]]
-    return np.asarray(Image.open(io.BytesIO(binary[view["byteOffset"]:view["byteOffset"] + view["byteLength"]])))
-
-
-def test_stream_sends_the_largest_change_first_and_lets_faint_changes_settle(server):
-    """With one tile's budget: a fresh burn goes before a tile that changed less; a one-level change (tissue cooling)
-    waits settle_s and then goes too."""
-    from lab.stream import TextureStream
-
-    recorder = _Recorder(server)
-    stream = TextureStream(server, _bumpy_patch(), tiles=4, max_tiles_per_s=2.0, settle_s=1.0)  # one token per 0.5 s
-    image = np.full((64, 64, 3), 120, np.uint8)
-    stream.update(image)
-    _applied(server, stream)
-    image[3:13, 3:13] = 130     # inside the top-left tile only (crops overlap by 2 texels): a change of 10 levels
-    image[40:44, 40:44] = 250   # a fresh burn inside another tile
-    first = stream.update(image)
-    assert first["tiles_sent"] == 1 and first["tiles_deferred"] == 1
-    assert (_sent_image(recorder.sent[-1][1]) == 250).any(), "the burn should go first"
-    time.sleep(0.6)
-    assert stream.update(image)["tiles_sent"] == 1 and (_sent_image(recorder.sent[-1][1]) == 130).any()
-    time.sleep(0.6)
-    image[20:28, 20:28] = 140   # a third tile changes and goes...
-    assert stream.update(image)["tiles_sent"] == 1
-    sent_at = time.monotonic()
-    image[20:28, 20:28] = 141   # ...and right after, by one level more
-    _applied(server, stream)
-    time.sleep(max(0.0, sent_at + 0.6 - time.monotonic()))  # a token is back, settle_s (since the tile's last send) not over yet
-    assert stream.update(image) == {"tiles_sent": 0, "bytes": 0, "tiles_deferred": 1}, "a faint change waits to settle"
-    time.sleep(0.5)
-    assert stream.update(image)["tiles_sent"] == 1 and (_sent_image(recorder.sent[-1][1]) == 141).any()
-    assert stream.update(image)["tiles_deferred"] == 0
-    stream.close()
-
-
-def test_tile_glbs_cover_the_mesh_and_map_the_texture_the_right_way_up(server):
-    import io
-
-    from PIL import Image
-
-    from lab.stream import TextureStream
-
-    recorder = _Recorder(server)
-    surface = _bumpy_patch()
-    stream = TextureStream(server, surface, tiles=4)
-    height, width = 96, 128
-    rows, cols = np.mgrid[0:height, 0:width]
-    image = np.stack([cols * 2, rows * 2, np.full_like(rows, 60)], axis=-1).astype(np.uint8)  # smooth: neighbours differ by 2
-    stream.update(image)
-    visible_faces = 0
-    for _, glb in recorder.sent:
-        document, binary = _glb_parts(glb)
-        primitive = document["meshes"][0]["primitives"][0]
-        positions = _accessor(document, binary, primitive["attributes"]["POSITION"])
-        st = _accessor(document, binary, primitive["attributes"]["TEXCOORD_0"])
-        faces = _accessor(document, binary, primitive["indices"]).reshape(-1, 3)
-        view = document["bufferViews"][document["images"][0]["bufferView"]]
-        crop = np.asarray(Image.open(io.BytesIO(binary[view["byteOffset"]:view["byteOffset"] + view["byteLength"]])).convert("RGB"))
-        assert document["materials"][0]["pbrMetallicRoughness"]["metallicFactor"] == 0.0
-        # every real vertex: the crop texel under its glTF UV (origin top left) is the image texel under its OBJ UV
-        for position, uv_tile in zip(positions[:40], st[:40]):
-            match = np.flatnonzero(np.abs(surface.vertices_mm - position).max(axis=1) < 1e-5)
-            if len(match) == 0:
-                continue  # a normal ghost corner
-            u, v = surface.uv[match[0]]
-            expected = image[min(int((1.0 - v) * height), height - 1), min(int(u * width), width - 1)]
-            got = crop[min(int(uv_tile[1] * crop.shape[0]), crop.shape[0] - 1), min(int(uv_tile[0] * crop.shape[1]), crop.shape[1] - 1)]
-            assert np.abs(got.astype(int) - expected).max() <= 2, (u, v, got, expected)
-        ghosts = sum(document["accessors"][t["POSITION"]]["sparse"]["count"] // 2 for t in primitive.get("targets", []))
-        visible_faces += len(faces) - ghosts
-    assert visible_faces == len(surface.faces)
-    stream.close()
-
-
-def test_browser_recomputed_tile_normals_equal_the_welded_whole_mesh_normals(server):
-    """What the viser client does (per tile: three.js computeVertexNormals, then the morph target) gives the normals
-    of the whole mesh welded at seams: no shading steps at tile borders."""
-    from lab.stream import TextureStream
-
-    recorder = _Recorder(server)
-    surface = _bumpy_patch()
-    # split the vertices on x = 0 into two copies, as at a UV seam: the normals must still be welded there
-    vertices, faces = surface.vertices_mm, surface.faces.copy()
-    on_seam = np.flatnonzero(np.abs(vertices[:, 0]) < 1e-4)
-    copies = len(vertices) + np.arange(len(on_seam))
-    right = vertices[faces].mean(axis=1)[:, 0] > 0
-    remap = np.arange(len(vertices) + len(on_seam))
-    remap[on_seam] = copies
-    faces[right] = remap[faces[right]]
-    surface.vertices_mm = np.concatenate([vertices, vertices[on_seam]])
-    surface.uv = np.concatenate([surface.uv, surface.uv[on_seam]])
-    surface.faces = faces
-    stream = TextureStream(server, surface, tiles=4)
-    stream.update(np.zeros((64, 64, 3), np.uint8))
-    welded = {}
-    vertices = surface.vertices_mm.astype(np.float64)
-    tri = vertices[surface.faces]
-    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    for corner in range(3):
-        for face, vertex in enumerate(surface.faces[:, corner]):
-            key = tuple(np.round(vertices[vertex], 4))
-            welded[key] = welded.get(key, 0) + cross[face]
-    worst, plain_worst = 0.0, 0.0
-    for _, glb in recorder.sent:
-        document, binary = _glb_parts(glb)
-        primitive = document["meshes"][0]["primitives"][0]
-        positions = _accessor(document, binary, primitive["attributes"]["POSITION"]).astype(np.float64)
-        faces = _accessor(document, binary, primitive["indices"]).reshape(-1, 3).astype(np.int64)
-        sparse = document["accessors"][primitive["targets"][0]["POSITION"]]["sparse"]
-        ids = np.frombuffer(binary, np.uint16, sparse["count"], document["bufferViews"][sparse["indices"]["bufferView"]]["byteOffset"])
-        deltas = np.frombuffer(binary, np.float32, 3 * sparse["count"], document["bufferViews"][sparse["values"]["bufferView"]]["byteOffset"]).reshape(-1, 3)
-        tri = positions[faces]
-        face_cross = np.cross(tri[:, 2] - tri[:, 1], tri[:, 0] - tri[:, 1])  # three.js: (c - b) x (a - b)
-        sums = np.zeros_like(positions)
-        for corner in range(3):
-            np.add.at(sums, faces[:, corner], face_cross)
-        real = np.setdiff1d(np.arange(len(positions)), ids)
-        drawn = positions.copy()
-        drawn[ids] += deltas
-        ghost_faces = np.isin(faces, ids).any(axis=1)
-        assert np.allclose(drawn[faces[ghost_faces]][:, 1:], drawn[faces[ghost_faces]][:, :1], atol=1e-4), "ghosts are drawn with zero area"
-        plain = np.zeros_like(positions)
-        for corner in range(3):
-            np.add.at(plain, faces[~ghost_faces][:, corner], face_cross[~ghost_faces])
-        for index in real:
-            expected = welded[tuple(np.round(positions[index], 4))]
-            expected = expected / np.linalg.norm(expected)
-            got = sums[index] / np.linalg.norm(sums[index])
-            worst = max(worst, np.degrees(np.arccos(np.clip(got @ expected, -1, 1))))
-            without = plain[index] / np.linalg.norm(plain[index])
-            plain_worst = max(plain_worst, np.degrees(np.arccos(np.clip(without @ expected, -1, 1))))
-    assert plain_worst > 2.0, "the test patch should need the fix"
-    assert worst < 0.05, f"tile normals differ from the whole mesh's by {worst:.3f} degrees"
-    stream.close()
+        flat = shown(_normal_map((0, 0, 1), size), matte, "flat")
+        toward = shown(_normal_map((0, 0.5, 1), size), matte, "toward_light")
+        away = shown(_normal_map((0, -0.5, 1), size), matte, "away_from_light")
+        mirror_matte = shown(_normal_map(halfway, size), matte, "mirror_matte")
+        mirror_glossy = shown(_normal_map(halfway, size), glossy, "mirror_glossy")
+        errors = chromium.submit(lambda _: list(viewer.errors)).result()
+    finally:
+        if viewer is not None:
+            chromium.submit(lambda _: viewer.close()).result()
+        stream.close()
+        server.stop()
+    levels = {name: image.mean() for name, image in
+              [("flat", flat), ("toward", toward), ("away", away), ("mirror_matte", mirror_matte), ("mirror_glossy", mirror_glossy)]}
+    assert levels["toward"] > levels["flat"] + 4 and levels["flat"] > levels["away"] + 4, (levels, tmp_path)
+    highlight = mirror_glossy.max(axis=-1) - mirror_matte.max(axis=-1)
+    assert (highlight > 40).mean() > 0.01, (f"no highlight where the glossy plane mirrors the light ({levels}, "
+                                            f"largest change {highlight.max():.0f}); see {tmp_path}")
+    complaints = [text for kind, text in console if kind == "error" or "gltf" in text.lower()]
+    assert not errors and not complaints, f"page errors: {errors[:3]}, console: {complaints[:3]}"

@@ -39,7 +39,7 @@ SECTION_LABEL = "depth against distance (mm)"  # the burn cross-section picture
 TOOL_COLOR, HOT_COLOR = (170, 175, 185), (255, 140, 40)
 ENVIRONMENT_INTENSITY = 0.4
 LOOPBACK_HOSTS = ("127.0.0.1", "localhost", "::1")
-MODEL_FOLDERS = (("", "Simulation"), ("tissue", "Tissue"), ("cautery", "Cautery"), ("bleeding", "Bleeding"))
+MODEL_FOLDERS = (("", "Simulation"), ("tissue", "Tissue"), ("cautery", "Cautery"), ("bleeding", "Bleeding"), ("look", "Look"))
 
 
 def slider_step(spec: params.ParamSpec) -> float:
@@ -158,7 +158,7 @@ class LabApp:
         self.server.scene.on_click()(self._scene_clicked)  # always on: a click is only used while a point is armed
         self.shown_builds = self.session.builds
         self.stream = TextureStream(self.server, self.scene.surface)
-        self.stream.update(self.scene.composite())
+        self._stream_look()
         self.history.clear()
         self._shown: dict = {}          # what the view last showed, by key: only changes are sent
         self.tool_views: dict = {}      # tool name -> its handles
@@ -168,6 +168,11 @@ class LabApp:
         for client in self.server.get_clients().values():
             self._frame_camera(client)
         self._build_gui()
+
+    def _stream_look(self) -> dict:
+        """Compose the look and stream its base colour, normal and roughness maps."""
+        rgb = self.scene.composite()
+        return self.stream.update(rgb, *self.scene.material_maps())
 
     def _client_connected(self, client) -> None:
         self._frame_camera(client)
@@ -545,7 +550,7 @@ class LabApp:
             if now - last_frame >= FRAME_INTERVAL_S:
                 self._sync_view()
                 if self.session.broken is None:  # a non-finite field is named in the stats, not drawn
-                    result = self.stream.update(self.scene.composite())
+                    result = self._stream_look()
                     updates += result["tiles_sent"] > 0  # updates that sent something
                     sent += result["bytes"]
                 last_frame = now

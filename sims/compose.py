@@ -141,6 +141,8 @@ class Composer:
         self.tissue = ti.Vector.field(2, ti.f32, (height, width))   # tissue height (mm), roughness at surface texels
         self.tissue.from_numpy(surfaces[0].astype(np.float32))
         self.relief = ti.field(ti.f32, (height, width))             # surface height with blood (mm), every texel
+        self.blood = ti.field(ti.f32, (height, width))              # blood depth at display texels (mm), smoothed
+        self.blood_tmp = ti.field(ti.f32, (height, width))
         self.rgb = ti.Vector.field(3, ti.u8, (height, width))
         self.normal = ti.Vector.field(3, ti.u8, (height, width))
         self.roughness = ti.field(ti.u8, (height, width))
@@ -154,6 +156,7 @@ class Composer:
         if tiles.listed and heat is not None:
             self._tissue(heat, tiles)
         if film is not None:
+            self._blood_depth(film, film.display_per_texel // 2)
             self._with_blood(film)
         elif tiles.listed:
             self._plain(tiles)
@@ -216,10 +219,30 @@ class Composer:
                 self._write(r, c, self.color[sr, sc], self.tissue[sr, sc][0], self.tissue[sr, sc][1])
 
     @ti.kernel
+    def _blood_depth(self, film: ti.template(), radius: ti.i32):
+        """blood = the film's trail at each texel's fill source, smoothed by a tent of `radius` texels (half a texel of
+        the film's grid): read bilinearly alone, a coarser film is linear within each of its cells, so its contours
+        (the wet edge) are cell-shaped and its slope (the lighting) changes in facets; the tent makes it smooth."""
+        height, width = self.blood.shape
+        for r, c in self.blood:
+            sr, sc = self._source(r, c)
+            self.blood[r, c] = film.sample(film.trail, sr, sc)
+        for r, c in self.blood:
+            total = 0.0
+            for k in range(-radius, radius + 1):
+                total += self.blood[r, ti.min(ti.max(c + k, 0), width - 1)] * (radius + 1 - ti.abs(k))
+            self.blood_tmp[r, c] = total / ((radius + 1) * (radius + 1))
+        for r, c in self.blood:
+            total = 0.0
+            for k in range(-radius, radius + 1):
+                total += self.blood_tmp[ti.min(ti.max(r + k, 0), height - 1), c] * (radius + 1 - ti.abs(k))
+            self.blood[r, c] = total / ((radius + 1) * (radius + 1))
+
+    @ti.kernel
     def _with_blood(self, film: ti.template()):
         for r, c in self.rgb:
             sr, sc = self._source(r, c)
-            h = film.sample(film.trail, sr, sc)
+            h = self.blood[r, c]
             clot = film.clot_at(sr, sc)
             stain = 1.0 - ti.exp(-film.sample(film.stain, sr, sc) / STAIN_MM)
             ground = _linear(self.color[sr, sc])

@@ -33,7 +33,7 @@ CAUTERY_BOTTOMS = ("body", "insulated")  # = sims.layers.BOTTOMS
 # hyperaemic rim where damage has begun (Omega 0.001-0.03: tissue that stayed near 45-50 C), the pale crest at the
 # coagulum's margin, the tan coagulum where it is 0.1-0.45 mm deep, browner where the burn is deeper, black-brown
 # char. Coagulum and char sit lower than the capsule (shrinkage); char stands up as a cracked crust within that.
-_HEALTHY_SURFACE = {"surface": "textures/liver_healthy_surface.png", "relief_mm": 0.04}
+_HEALTHY_SURFACE = {"surface": "textures/liver_healthy_surface.png", "relief_mm": 0.015}
 _COAGULATED_SURFACE = {"surface": "textures/liver_coagulated_surface.png", "relief_mm": 0.06, "offset_mm": -0.05}
 DEFAULT_STAGES = [
     {"name": "healthy", "texture": "textures/liver_healthy.png", **_HEALTHY_SURFACE},

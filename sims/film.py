@@ -84,6 +84,9 @@ class BloodFilm:
         self.bleeding = bleeding
         shape = tuple(bleeding.film_shape)
         self.resampler = bleeding.film_display
+        # display texels per texel of the film's grid (8 under the default height field): the look smooths the film
+        # over about one such texel, so that it has no cell-shaped contours (sims.compose)
+        self.display_per_texel = 1 if self.resampler is None else max(1, round(self.resampler.fine_shape[1] / self.resampler.coarse_shape[1]))
         self.clot = bleeding.film_clot
         self.same_grid, self.has_clot = self.resampler is None, self.clot is not None
         self.fresh = ti.field(ti.f32, shape)
@@ -109,21 +112,19 @@ class BloodFilm:
 
     @ti.func
     def sample(self, field: ti.template(), r, c):
-        """A field of the film's grid at display texel (r, c)."""
-        value = 0.0
+        """A field of the film's grid (scalar or vector) at display texel (r, c)."""
         if ti.static(self.same_grid):
-            value = field[r, c]
+            return field[r, c]
         else:
-            value = self.resampler.sample(field, r, c)
-        return value
+            return self.resampler.sample(field, r, c)
 
     @ti.func
     def clot_at(self, r, c):
         """Clot fraction (0-1) at display texel (r, c); 0 for a method that keeps none on a grid."""
-        value = 0.0
         if ti.static(self.has_clot):
-            value = self.sample(self.clot, r, c)
-        return value
+            return self.sample(self.clot, r, c)
+        else:
+            return 0.0
 
     def arrays(self) -> dict:
         """(H, W) trail and stain on the film's grid, mm."""

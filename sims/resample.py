@@ -93,10 +93,11 @@ class GridResampler:
 
     @ti.func
     def sample(self, src: ti.template(), r, c):
-        """src (a coarse (h, w) field) at fine texel (r, c)."""
+        """src (a coarse (h, w) field, scalar or vector) at fine texel (r, c)."""
         width = src.shape[1]
-        value = 0.0
-        for k in ti.static(range(TAPS)):
+        index = self.taps[r, c][0]
+        value = self.weights[r, c][0] * src[index // width, index % width]
+        for k in ti.static(range(1, TAPS)):
             index = self.taps[r, c][k]
             value += self.weights[r, c][k] * src[index // width, index % width]
         return value

@@ -186,8 +186,9 @@ def tissue_mask(image: np.ndarray) -> np.ndarray:
     return (r > 90) & (r - g > 40) & (r - b > 30)
 
 
-def white_fraction(image: np.ndarray, level: int = 150) -> float:
-    """Fraction of whitish pixels (min(R, G, B) > level): coagulated tissue; lit red liver stays far below."""
+def white_fraction(image: np.ndarray, level: int = 100) -> float:
+    """Fraction of pale pixels (min(R, G, B) > level): coagulated tissue (pale tan, sRGB about 160-190, 130-155,
+    115-140 unlit); lit red liver (green and blue below about 60) stays far below."""
     return float((np.asarray(image).min(axis=-1) > level).mean())
 
 

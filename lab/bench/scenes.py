@@ -19,14 +19,15 @@ def _free_port() -> int:
 
 def scene_cost(path, seconds: float, server) -> dict:
     """Run the first `seconds` of a scene with profiling; every 1/10 simulated s compose the texture and hand the
-    changed tiles to a TextureStream on a viser server with no client (encoding = PNG tiles in GLBs)."""
+    changed tiles to a TextureStream on a viser server with no client (encoding = the tiles' colour, normal and
+    roughness PNGs in GLBs)."""
     from lab.stream import TextureStream
     from sims.scene import Scene
 
     scene = Scene.from_file(path)
     stream = TextureStream(server, scene.surface, name=f"/bench/{path.stem}", hide_after_s=0.0)
     scene.step()  # compile the step kernels, then the display ones
-    stream.update(scene.composite())
+    stream.update(scene.composite(), *scene.material_maps())
     scene.reset()
     scene.profile = True
     steps = max(1, int(round(seconds / scene.time_step_s)))
@@ -36,8 +37,9 @@ def scene_cost(path, seconds: float, server) -> dict:
         scene.step()
         if step % every == 0:
             rgb = scene.composite()
+            maps = scene.material_maps()
             start = time.perf_counter()
-            sent_bytes += stream.update(rgb)["bytes"]
+            sent_bytes += stream.update(rgb, *maps)["bytes"]
             encoding += time.perf_counter() - start
             updates += 1
     stream.close()

@@ -50,7 +50,8 @@ class TextureError(ValueError):
     """A stage texture that cannot be read."""
 
 
-def _read_image(path, size: int, tile: int) -> np.ndarray:
+def load_texture(path, size: int, tile: int = 1) -> np.ndarray:
+    """Read an image as (size, size, 3) float32 in [0, 1], repeated `tile` times per side."""
     try:
         with Image.open(path) as image:
             cell = image.convert("RGB").resize((max(1, round(size / tile)),) * 2, Image.Resampling.LANCZOS)
@@ -65,16 +66,11 @@ def _read_image(path, size: int, tile: int) -> np.ndarray:
     return np.asarray(tiled, np.float32) / 255.0
 
 
-def load_texture(path, size: int, tile: int = 1) -> np.ndarray:
-    """Read an image as (size, size, 3) float32 in [0, 1], repeated `tile` times per side."""
-    return _read_image(path, size, tile)
-
-
 def stage_surface(stage: dict, size: int) -> np.ndarray:
     """(size, size, 2) float32 height (mm) and roughness of a stage: from its surface map (red: height in units of
     relief_mm, green: roughness) when it has one, else its constant roughness at height 0; offset_mm added."""
     if stage.get("surface"):
-        image = _read_image(stage["surface"], size, stage["tile"])
+        image = load_texture(stage["surface"], size, stage["tile"])
         height, roughness = image[..., 0] * stage["relief_mm"], image[..., 1]
     else:
         height, roughness = np.zeros((size, size), np.float32), np.full((size, size), stage["roughness"], np.float32)

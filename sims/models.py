@@ -18,14 +18,17 @@ class BleedingMethod(Protocol):
 
     method: str    # its name in BLEEDING_CLASSES
     params: dict   # the scene's bleeding parameters (sims.params.BLEEDING_METHODS[method]), read every step
-    thickness: object  # Taichi field (H, W): the displayed blood thickness (mm), with its fading trails
+    film_shape: tuple  # the grid of its film (sims.film): its own grid, or the display's
+    film_display: object  # sims.resample.GridResampler from that grid onto the display, or None (the same grid)
+    film_clot: object  # Taichi field on that grid: clot fraction 0-1, or None
 
     def reset(self) -> None: ...
     def set_gravity(self, gravity_mm_s2) -> None: ...
     def spawn_rate(self, key, texel_rc, rate_ml_s: float, dt_s: float, radius_mm: float) -> int: ...
     def step(self, dt_s: float, suction: list = ()) -> None:
         """suction: [(position_mm (3,), radius_mm, rate_ml_s)] of the suction tools switched on."""
-    def update_display(self, fade: float) -> None: ...
+    def fresh_film(self, out) -> None:
+        """out (a Taichi field of film_shape) = the blood's thickness now, mm."""
     def blood_area_mm2(self) -> float: ...
     def metrics(self) -> dict:
         """method, blood_area_mm2, max_thickness_mm, volume_ml and spawned_ml = on_surface_ml + suctioned_ml +

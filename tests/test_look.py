@@ -131,3 +131,12 @@ def test_a_burn_sinks_and_its_char_is_matte():
     assert np.median(roughness[char]) > np.median(roughness[coagulated]) > np.median(roughness[healthy])
     height = scene.composer.relief.to_numpy()
     assert np.median(height[coagulated]) < np.median(height[healthy]) - 0.02  # shrinkage, mm
+
+
+def test_a_surface_map_that_is_no_image_is_refused_with_its_key_named():
+    from sims.config import ConfigError
+
+    with pytest.raises(ConfigError) as error:
+        Scene.from_file(BLEEDING, ["texture_size=32", "look.stages=[{name: healthy, texture: textures/liver_healthy.png, "
+                                   "surface: meshes/patch.obj, relief_mm: 0.1}]"])
+    assert "look.stages.0.surface" in str(error.value) and "patch.obj" in str(error.value)

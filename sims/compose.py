@@ -152,6 +152,7 @@ class Composer:
         if tiles.listed and heat is not None:
             self._tissue(heat, tiles)
         if film is not None:
+            film.take_near()
             self._blood_depth(film, film.display_per_texel // 2)
             self._with_blood(film)
         elif tiles.listed:
@@ -222,16 +223,18 @@ class Composer:
         height, width = self.blood.shape
         for r, c in self.blood:
             sr, sc = self._source(r, c)
-            self.blood[r, c] = film.sample(film.trail, sr, sc)
+            self.blood[r, c] = film.sample(film.trail, sr, sc) if film.is_near(sr, sc) else 0.0
         for r, c in self.blood:
             total = 0.0
-            for k in range(-radius, radius + 1):
-                total += self.blood[r, ti.min(ti.max(c + k, 0), width - 1)] * (radius + 1 - ti.abs(k))
+            if film.is_near(r, c):
+                for k in range(-radius, radius + 1):
+                    total += self.blood[r, ti.min(ti.max(c + k, 0), width - 1)] * (radius + 1 - ti.abs(k))
             self.blood_tmp[r, c] = total / ((radius + 1) * (radius + 1))
         for r, c in self.blood:
             total = 0.0
-            for k in range(-radius, radius + 1):
-                total += self.blood_tmp[ti.min(ti.max(r + k, 0), height - 1), c] * (radius + 1 - ti.abs(k))
+            if film.is_near(r, c):
+                for k in range(-radius, radius + 1):
+                    total += self.blood_tmp[ti.min(ti.max(r + k, 0), height - 1), c] * (radius + 1 - ti.abs(k))
             self.blood[r, c] = total / ((radius + 1) * (radius + 1))
 
     @ti.kernel
@@ -239,16 +242,19 @@ class Composer:
         for r, c in self.rgb:
             sr, sc = self._source(r, c)
             h = self.blood[r, c]
-            clot = film.clot_at(sr, sc)
-            stain = 1.0 - ti.exp(-film.sample(film.stain, sr, sc) / STAIN_MM)
-            ground = _linear(self.color[sr, sc])
-            ground *= 1.0 - stain * (1.0 - ti.Vector(STAIN_TRANSMITTANCE))
-            color = _encoded(blood_layer(ground, h, FRESH_SATURATION + (CLOT_SATURATION - FRESH_SATURATION) * clot))
-            wet = 1.0 - ti.exp(-h / WET_MM)
-            blood_roughness = BLOOD_ROUGHNESS[0] + (BLOOD_ROUGHNESS[1] - BLOOD_ROUGHNESS[0]) * clot
+            stain_mm = film.sample(film.stain, sr, sc)
             tissue = self.tissue[sr, sc]
-            level = _smoothstep(0.0, POOL_LEVEL_MM, h)
-            self._write(r, c, color, tissue[0] * (1.0 - level) + h, tissue[1] * (1.0 - wet) + blood_roughness * wet)
+            if h <= 0.0 and stain_mm <= 0.0:  # never wet: the tissue as it is, without the cost of the layer
+                self._write(r, c, self.color[sr, sc], tissue[0], tissue[1])
+            else:
+                clot = film.clot_at(sr, sc)
+                stain = 1.0 - ti.exp(-stain_mm / STAIN_MM)
+                ground = _linear(self.color[sr, sc]) * (1.0 - stain * (1.0 - ti.Vector(STAIN_TRANSMITTANCE)))
+                color = _encoded(blood_layer(ground, h, FRESH_SATURATION + (CLOT_SATURATION - FRESH_SATURATION) * clot))
+                wet = 1.0 - ti.exp(-h / WET_MM)
+                blood_roughness = BLOOD_ROUGHNESS[0] + (BLOOD_ROUGHNESS[1] - BLOOD_ROUGHNESS[0]) * clot
+                level = _smoothstep(0.0, POOL_LEVEL_MM, h)
+                self._write(r, c, color, tissue[0] * (1.0 - level) + h, tissue[1] * (1.0 - wet) + blood_roughness * wet)
 
     @ti.kernel
     def _normals(self, texel_mm: ti.f32):

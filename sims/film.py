@@ -17,6 +17,7 @@ import taichi as ti
 
 SPLAT_SCALE = 1024  # fixed-point units of one particle in the splat grid (integer atomics: deterministic)
 MAX_FILTER_TEXELS = 64
+NEAR_TEXELS = 2    # film texels about a wet one whose display texels the look smooths (BloodFilm.take_near)
 
 
 @ti.data_oriented
@@ -92,11 +93,13 @@ class BloodFilm:
         self.fresh = ti.field(ti.f32, shape)
         self.trail = ti.field(ti.f32, shape)  # mm
         self.stain = ti.field(ti.f32, shape)  # mm
+        self.near = ti.field(ti.i32, shape)   # 1: the trail is not zero within NEAR_TEXELS of this texel (take_near)
         self.reset()
 
     def reset(self) -> None:
         self.trail.fill(0.0)
         self.stain.fill(0.0)
+        self.near.fill(0)
 
     def advance(self, dt_s: float, trail_s: float) -> None:
         """After a step of dt_s: take the method's film and keep the trail and the stain."""
@@ -109,6 +112,29 @@ class BloodFilm:
             fresh = self.fresh[r, c]
             self.trail[r, c] = ti.max(fresh, decay * self.trail[r, c])
             self.stain[r, c] = ti.max(self.stain[r, c], fresh)
+
+    @ti.kernel
+    def take_near(self):
+        """near = whether the trail is not zero within NEAR_TEXELS texels of this grid: a display texel whose
+        heaviest tap is not near reads a zero trail within the look's smoothing (half a texel of this grid), so the
+        look skips it."""
+        height, width = self.near.shape
+        for r, c in self.near:
+            found = 0
+            for dr, dc in ti.ndrange((-NEAR_TEXELS, NEAR_TEXELS + 1), (-NEAR_TEXELS, NEAR_TEXELS + 1)):
+                rr, cc = ti.min(ti.max(r + dr, 0), height - 1), ti.min(ti.max(c + dc, 0), width - 1)
+                if self.trail[rr, cc] > 0.0:
+                    found = 1
+            self.near[r, c] = found
+
+    @ti.func
+    def is_near(self, r, c):
+        """Whether display texel (r, c) may read a trail that is not zero (take_near)."""
+        if ti.static(self.same_grid):
+            return self.near[r, c]
+        else:
+            index = self.resampler.taps[r, c][0]
+            return self.near[index // self.near.shape[1], index % self.near.shape[1]]
 
     @ti.func
     def sample(self, field: ti.template(), r, c):

@@ -140,3 +140,20 @@ def test_a_surface_map_that_is_no_image_is_refused_with_its_key_named():
         Scene.from_file(BLEEDING, ["texture_size=32", "look.stages=[{name: healthy, texture: textures/liver_healthy.png, "
                                    "surface: meshes/patch.obj, relief_mm: 0.1}]"])
     assert "look.stages.0.surface" in str(error.value) and "patch.obj" in str(error.value)
+
+
+def test_the_look_smooths_the_film_everywhere_it_reaches_and_skips_only_dry_texels():
+    """The smoothed blood depth the look lights equals a full pass (the coarse film read at every texel's fill source,
+    then the tent filter): skipping texels far from any blood loses nothing."""
+    from scipy.ndimage import convolve1d
+
+    scene = _bled()
+    scene.composite()
+    film, fill = scene.film, scene.surface.fill_index
+    read = film.resampler.array(film.trail.to_numpy()).ravel()[fill.ravel()].reshape(fill.shape)
+    radius = film.display_per_texel // 2
+    tent = (radius + 1 - np.abs(np.arange(-radius, radius + 1))) / (radius + 1) ** 2
+    expected = convolve1d(convolve1d(read, tent, axis=1, mode="nearest"), tent, axis=0, mode="nearest")
+    shown = scene.composer.blood.to_numpy()
+    assert (shown > 0).mean() < 0.8 and (expected > 0).sum() > 100
+    np.testing.assert_allclose(shown, expected, atol=1e-5)

@@ -44,6 +44,7 @@ BLOOD_ROUGHNESS = (0.1, 0.4)            # fresh, clotted
 WET_MM = 0.01                           # blood depth at which the surface is wet (glossy) by 1 - 1/e
 POOL_LEVEL_MM = 0.2                     # blood deeper than this has a level surface over the tissue's relief
 NORMAL_LEVEL = 127.5                    # 8-bit normal maps: 0 maps to 127.5
+ENCODE_STEPS = 16384                    # linear light -> 8-bit sRGB by table: within a level of the exact encoding
 
 
 class TextureError(ValueError):
@@ -89,11 +90,10 @@ def _linear(srgb):
     return ti.select(srgb <= 0.04045, srgb / 12.92, ((srgb + 0.055) / 1.055) ** 2.4)
 
 
-@ti.func
-def _encoded(linear):
+def _encoded(linear: np.ndarray) -> np.ndarray:
     """Linear light -> sRGB-encoded colour (0-1)."""
-    x = ti.max(linear, 0.0)
-    return ti.select(x <= 0.0031308, 12.92 * x, 1.055 * x ** (1.0 / 2.4) - 0.055)
+    x = np.maximum(linear, 0.0)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * x ** (1.0 / 2.4) - 0.055)
 
 
 @ti.func
@@ -134,6 +134,9 @@ class Composer:
         self.fill.from_numpy(fill_index.astype(np.int32))
         self.color = ti.Vector.field(3, ti.f32, (height, width))    # tissue colour (sRGB, 0-1) at surface texels
         self.color.from_numpy(textures[0].astype(np.float32))
+        self.color_linear = ti.Vector.field(3, ti.f32, (height, width))  # the same in linear light
+        self.encode = ti.field(ti.u8, ENCODE_STEPS)  # 8-bit sRGB of linear light (i / (ENCODE_STEPS - 1))
+        self.encode.from_numpy(np.rint(_encoded(np.linspace(0.0, 1.0, ENCODE_STEPS)) * 255.0).astype(np.uint8))
         self.tissue = ti.Vector.field(2, ti.f32, (height, width))   # tissue height (mm), roughness at surface texels
         self.tissue.from_numpy(surfaces[0].astype(np.float32))
         self.relief = ti.field(ti.f32, (height, width))             # surface height with blood (mm), every texel
@@ -144,6 +147,7 @@ class Composer:
         self.roughness = ti.field(ti.u8, (height, width))
         self.count = count
         self.texel_mm = float(texel_mm)
+        self._linearize()
 
     def compose(self, tiles, heat=None, film=None) -> np.ndarray:
         """(H, W, 3) uint8 base colour from the models present (each may be None; heat: sims.heat_display.HeatDisplay,
@@ -194,6 +198,7 @@ class Composer:
                     color = color * (1.0 - weight) + self.textures[s, r, c] * weight
                     surface = surface * (1.0 - weight) + self.surfaces[s, r, c] * weight
                 self.color[r, c] = color
+                self.color_linear[r, c] = _linear(color)
                 self.tissue[r, c] = surface
 
     @ti.func
@@ -205,8 +210,17 @@ class Composer:
     @ti.func
     def _write(self, r, c, color, height, roughness):
         self.rgb[r, c] = ti.cast(ti.min(ti.max(color * 255.0 + 0.5, 0.0), 255.0), ti.u8)
+        self._write_surface(r, c, height, roughness)
+
+    @ti.func
+    def _write_surface(self, r, c, height, roughness):
         self.relief[r, c] = height
         self.roughness[r, c] = ti.cast(ti.min(ti.max(roughness * 255.0 + 0.5, 0.0), 255.0), ti.u8)
+
+    @ti.kernel
+    def _linearize(self):
+        for r, c in self.color:
+            self.color_linear[r, c] = _linear(self.color[r, c])
 
     @ti.kernel
     def _plain(self, tiles: ti.template()):
@@ -249,12 +263,15 @@ class Composer:
             else:
                 clot = film.clot_at(sr, sc)
                 stain = 1.0 - ti.exp(-stain_mm / STAIN_MM)
-                ground = _linear(self.color[sr, sc]) * (1.0 - stain * (1.0 - ti.Vector(STAIN_TRANSMITTANCE)))
-                color = _encoded(blood_layer(ground, h, FRESH_SATURATION + (CLOT_SATURATION - FRESH_SATURATION) * clot))
+                ground = self.color_linear[sr, sc] * (1.0 - stain * (1.0 - ti.Vector(STAIN_TRANSMITTANCE)))
+                linear = blood_layer(ground, h, FRESH_SATURATION + (CLOT_SATURATION - FRESH_SATURATION) * clot)
                 wet = 1.0 - ti.exp(-h / WET_MM)
                 blood_roughness = BLOOD_ROUGHNESS[0] + (BLOOD_ROUGHNESS[1] - BLOOD_ROUGHNESS[0]) * clot
                 level = _smoothstep(0.0, POOL_LEVEL_MM, h)
-                self._write(r, c, color, tissue[0] * (1.0 - level) + h, tissue[1] * (1.0 - wet) + blood_roughness * wet)
+                self._write_surface(r, c, tissue[0] * (1.0 - level) + h, tissue[1] * (1.0 - wet) + blood_roughness * wet)
+                for k in ti.static(range(3)):
+                    index = ti.cast(ti.min(ti.max(linear[k], 0.0), 1.0) * (ENCODE_STEPS - 1) + 0.5, ti.i32)
+                    self.rgb[r, c][k] = self.encode[index]
 
     @ti.kernel
     def _normals(self, texel_mm: ti.f32):

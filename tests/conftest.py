@@ -1,6 +1,7 @@
 import pytest
 
 from sims import backend
+from tests import browser
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -9,3 +10,11 @@ def taichi_cpu():
     per runtime (each field made after the first kernel launch is one) and the process dies past that."""
     yield backend.init("cpu")
     backend.shutdown()
+
+
+@pytest.fixture(scope="module")
+def chrome():
+    """Debian chromium on a thread of its own (tests.browser.BrowserThread), one per test module that asks for it."""
+    thread = browser.BrowserThread()
+    yield thread
+    thread.close()

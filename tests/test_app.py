@@ -48,13 +48,6 @@ def hostile(lab):
 
 
 @pytest.fixture(scope="module")
-def chrome():
-    thread = browser.BrowserThread()
-    yield thread
-    thread.close()
-
-
-@pytest.fixture(scope="module")
 def page(lab, chrome):
     """One page for the module (page loads are slow in software WebGL); the canvas drawn at half resolution."""
     url = f"http://127.0.0.1:{lab.server.get_port()}/?fixedDpr=0.5"

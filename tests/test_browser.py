@@ -164,17 +164,10 @@ class Lab:
 
 
 @pytest.fixture(scope="module")
-def chromium():
-    thread = browser.BrowserThread()
-    yield thread
-    thread.close()
-
-
-@pytest.fixture(scope="module")
-def lab(tmp_path_factory, chromium):
+def lab(tmp_path_factory, chrome):
     scene_file = tmp_path_factory.mktemp("browser") / "scene.yaml"
     scene_file.write_text(SCENE_YAML)
-    lab = Lab(scene_file, chromium)
+    lab = Lab(scene_file, chrome)
     yield lab
     lab.close()
     assert not lab.session.notice, f"the lab's loop stopped or refused a command: {lab.session.notice}"
@@ -425,7 +418,7 @@ def _normal_map(direction, size: int) -> np.ndarray:
 
 
 @needs_chromium
-def test_the_normal_and_roughness_maps_of_the_tiles_reach_the_shader(chromium, tmp_path):
+def test_the_normal_and_roughness_maps_of_the_tiles_reach_the_shader(chrome, tmp_path):
     """A plane under one light from +v and above: a normal map tilted toward +v (G above 128) turns it to the light
     and draws it brighter than a flat one, tilted toward -v darker; a low roughness where the plane mirrors the light
     into the camera draws a highlight that a high roughness does not; no page errors."""
@@ -450,7 +443,7 @@ def test_the_normal_and_roughness_maps_of_the_tiles_reach_the_shader(chromium, t
     viewer = None
     try:
         stream.update(rgb, normal=_normal_map((0, 0, 1), size), roughness=matte)
-        viewer = chromium.submit(lambda instance: browser.Viewer(instance, f"http://127.0.0.1:{server.get_port()}/{PAGE_QUERY}",
+        viewer = chrome.submit(lambda instance: browser.Viewer(instance, f"http://127.0.0.1:{server.get_port()}/{PAGE_QUERY}",
                                                                 viewport=VIEWPORT)).result(timeout=OPEN_TIMEOUT_S)
         deadline = time.monotonic() + OPEN_TIMEOUT_S
         while not server.get_clients():
@@ -463,7 +456,7 @@ def test_the_normal_and_roughness_maps_of_the_tiles_reach_the_shader(chromium, t
             viewer.page.on("console", lambda message: console.append((message.type, message.text)))
             viewer.page.get_by_label("Minimize panel").first.click(timeout=OPEN_TIMEOUT_S * 1000)
 
-        chromium.submit(listen).result()
+        chrome.submit(listen).result()
         height, width = VIEWPORT["height"], VIEWPORT["width"]
         middle = (slice(int(height * 0.3), int(height * 0.7)), slice(int(width * 0.35), int(width * 0.65)))
 
@@ -475,7 +468,7 @@ def test_the_normal_and_roughness_maps_of_the_tiles_reach_the_shader(chromium, t
                 assert time.monotonic() < deadline, f"the page did not draw the {name} tiles ({stream.client_stats(client_id)})"
                 time.sleep(0.05)
                 stream.update(rgb, normal=normal, roughness=roughness)
-            image = chromium.submit(lambda _: viewer.screenshot()).result()
+            image = chrome.submit(lambda _: viewer.screenshot()).result()
             browser.save(image, tmp_path / f"{name}.png")
             assert not (np.abs(image[middle].astype(int) - BACKGROUND).max(axis=-1) < 30).any(), f"the plane does not fill the middle; see {tmp_path}"
             return image[middle].astype(np.float64)
@@ -485,10 +478,10 @@ def test_the_normal_and_roughness_maps_of_the_tiles_reach_the_shader(chromium, t
         away = shown(_normal_map((0, -0.5, 1), size), matte, "away_from_light")
         mirror_matte = shown(_normal_map(halfway, size), matte, "mirror_matte")
         mirror_glossy = shown(_normal_map(halfway, size), glossy, "mirror_glossy")
-        errors = chromium.submit(lambda _: list(viewer.errors)).result()
+        errors = chrome.submit(lambda _: list(viewer.errors)).result()
     finally:
         if viewer is not None:
-            chromium.submit(lambda _: viewer.close()).result()
+            chrome.submit(lambda _: viewer.close()).result()
         stream.close()
         server.stop()
     levels = {name: image.mean() for name, image in

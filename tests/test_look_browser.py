@@ -19,13 +19,6 @@ HIGHLIGHT_LEVELS = 60   # the issue's measure: the brightest blood pixels at lea
 
 
 @pytest.fixture(scope="module")
-def chrome():
-    thread = browser.BrowserThread()
-    yield thread
-    thread.close()
-
-
-@pytest.fixture(scope="module")
 def lab():
     from lab.app import LabApp
 

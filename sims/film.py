@@ -15,6 +15,8 @@ import math
 import numpy as np
 import taichi as ti
 
+from sims.resample import GridReader
+
 SPLAT_SCALE = 1024  # fixed-point units of one particle in the splat grid (integer atomics: deterministic)
 MAX_FILTER_TEXELS = 64
 SPLAT_TILE = 16    # texels per side of the particles' filter tiles (ParticleSplat)
@@ -95,7 +97,7 @@ class ParticleSplat:
 
 
 @ti.data_oriented
-class BloodFilm:
+class BloodFilm(GridReader):
     """A bleeding method's film as the look shows it (module docstring). bleeding: a sims.models.BleedingMethod, whose
     fresh_film(out) writes its film (mm) on film_shape and whose film_display is the GridResampler onto the display
     (None: its grid is the display's); clot: its clot fraction field on that grid, or None."""
@@ -103,12 +105,12 @@ class BloodFilm:
     def __init__(self, bleeding):
         self.bleeding = bleeding
         shape = tuple(bleeding.film_shape)
-        self.resampler = bleeding.film_display
+        super().__init__(bleeding.film_display)
         # display texels per texel of the film's grid (8 under the default height field): the look smooths the film
         # over about one such texel, so that it has no cell-shaped contours (sims.compose)
         self.display_per_texel = 1 if self.resampler is None else max(1, round(self.resampler.fine_shape[1] / self.resampler.coarse_shape[1]))
         self.clot = bleeding.film_clot
-        self.same_grid, self.has_clot = self.resampler is None, self.clot is not None
+        self.has_clot = self.clot is not None
         self.fresh = ti.field(ti.f32, shape)
         self.trail = ti.field(ti.f32, shape)  # mm
         self.stain = ti.field(ti.f32, shape)  # mm
@@ -154,14 +156,6 @@ class BloodFilm:
         else:
             index = self.resampler.taps[r, c][0]
             return self.near[index // self.near.shape[1], index % self.near.shape[1]]
-
-    @ti.func
-    def sample(self, field: ti.template(), r, c):
-        """A field of the film's grid (scalar or vector) at display texel (r, c)."""
-        if ti.static(self.same_grid):
-            return field[r, c]
-        else:
-            return self.resampler.sample(field, r, c)
 
     @ti.func
     def clot_at(self, r, c):

@@ -6,26 +6,16 @@ cross-section, the bleed throttle) reads the heat grid itself.
 import numpy as np
 import taichi as ti
 
-from sims.resample import GridResampler
+from sims.resample import GridReader, GridResampler
 
 @ti.data_oriented
-class HeatDisplay:
+class HeatDisplay(GridReader):
     """A Cautery's surface fields read at display texels (sample(), in the look's kernels) and its arrays at display
     resolution. With the same grid (resampler None) a display texel is a heat texel."""
 
     def __init__(self, cautery, resampler: GridResampler | None):
-        self.cautery, self.resampler = cautery, resampler
-        self.same_grid = resampler is None
-
-    @ti.func
-    def sample(self, field: ti.template(), r, c):
-        """A (heat grid) surface field of the cautery at display texel (r, c)."""
-        value = 0.0
-        if ti.static(self.same_grid):
-            value = field[r, c]
-        else:
-            value = self.resampler.sample(field, r, c)
-        return value
+        super().__init__(resampler)
+        self.cautery = cautery
 
     def heat_taps(self) -> np.ndarray | None:
         """(H * W, K) flat heat-grid texels each display texel reads; None when heat runs on the display grid."""

@@ -103,7 +103,6 @@ class HeightFieldBleeding:
 
     def __init__(self, surface, params: dict, gravity_mm_s2, walls: bool = False, display=None):
         self.surface, self.params, self.walls, self.display = surface, params, bool(walls), display
-        self._same_grid = display is None
         mask = surface.mask
         height, width = mask.shape
         self.height, self.width = height, width

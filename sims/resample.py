@@ -101,3 +101,21 @@ class GridResampler:
             index = self.taps[r, c][k]
             value += self.weights[r, c][k] * src[index // width, index % width]
         return value
+
+
+@ti.data_oriented
+class GridReader:
+    """Reads fields of a model's grid at display texels: directly when the model runs on the display grid (resampler
+    None), else through the GridResampler. The base of what shows a model's fields in the look."""
+
+    def __init__(self, resampler: "GridResampler | None"):
+        self.resampler = resampler
+        self.same_grid = resampler is None
+
+    @ti.func
+    def sample(self, field: ti.template(), r, c):
+        """A field of the model's grid (scalar or vector) at display texel (r, c)."""
+        if ti.static(self.same_grid):
+            return field[r, c]
+        else:
+            return self.resampler.sample(field, r, c)

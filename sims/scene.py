@@ -101,14 +101,14 @@ def load_inputs(config: dict) -> SceneInputs:
         raise ConfigError(file, "mesh", f"{config['mesh']}: {exc}") from None
     textures, surfaces = [], []
     for index, stage in enumerate(config["look"]["stages"]):
-        for key in ("texture", "surface"):
-            try:
-                if key == "texture":
-                    textures.append(load_texture(stage["texture"], config["texture_size"], stage["tile"]))
-                else:
-                    surfaces.append(stage_surface(stage, config["texture_size"]))
-            except TextureError as exc:
-                raise ConfigError(file, f"look.stages.{index}.{key}", f"{stage[key]}: {exc}") from None
+        try:
+            textures.append(load_texture(stage["texture"], config["texture_size"], stage["tile"]))
+        except TextureError as exc:
+            raise ConfigError(file, f"look.stages.{index}.texture", f"{stage['texture']}: {exc}") from None
+        try:
+            surfaces.append(stage_surface(stage, config["texture_size"]))
+        except TextureError as exc:
+            raise ConfigError(file, f"look.stages.{index}.surface", f"{stage['surface']}: {exc}") from None
     for index, item in enumerate(config["instruments"]):
         if item["shape"]["type"] == "mesh":
             key = f"instruments.{index}.shape.file"

@@ -170,9 +170,10 @@ class LabApp:
         self._build_gui()
 
     def _stream_look(self) -> dict:
-        """Compose the look and stream its base colour, normal and roughness maps."""
+        """Compose the look and stream its base colour, normal and roughness maps (only the tiles that changed are
+        compared and encoded)."""
         rgb = self.scene.composite()
-        return self.stream.update(rgb, *self.scene.material_maps())
+        return self.stream.update(rgb, *self.scene.material_maps(), changed=self.scene.take_display_changes())
 
     def _client_connected(self, client) -> None:
         self._frame_camera(client)

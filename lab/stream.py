@@ -325,6 +325,7 @@ class _Tile:
     sent_at: float = -1.0
     glb: bytes | None = None         # the GLB of those crops, shared by every browser
     version: int = -1                # which publication it is (stream-wide count; -1: none in this layout)
+    index: int = -1                  # its place in the stream's tiles
 
 
 class _Viewer:
@@ -466,6 +467,7 @@ class TextureStream:
         self._tokens, self._tokens_at = self._burst, None
         self._viewers: dict[int, _Viewer] = {}  # client id -> its share of the stream
         self._shape = None  # ((H, W), the maps' kinds) of the layout
+        self._candidates: set[int] = set()  # tiles that may differ from what they last published (update's changed)
         self._pad = None    # np.pad widths that make odd-sized maps even, for half-resolution maps
         self.stats = {"updates": 0, "tiles_sent": 0, "bytes": 0, "tiles_deferred": 0, "python_s": 0.0,
                       "tiles_delivered": 0, "removed": 0, "removed_unconfirmed": 0}
@@ -506,7 +508,7 @@ class TextureStream:
                     tile_positions = np.concatenate([tile_positions, extra])
                     tile_uv = np.concatenate([tile_uv, tile_uv[source]])
                     faces = np.concatenate([faces, ghost_faces])
-                out.append(_Tile(tile_positions, tile_uv, faces, morph_ids, morph_delta))
+                out.append(_Tile(tile_positions, tile_uv, faces, morph_ids, morph_delta, index=len(out)))
             if all(np.abs(tile.positions).max() <= _INT16_LIMIT and np.abs(tile.morph_delta).max(initial=0) <= _INT16_LIMIT
                    for tile in out):
                 self.grid = grid
@@ -536,7 +538,8 @@ class TextureStream:
                     "removed_unconfirmed": 0}
         return {"nodes": viewer.node_count(), "pending_removals": len(viewer.retiring), **viewer.stats}
 
-    def update(self, rgb: np.ndarray, normal: np.ndarray | None = None, roughness: np.ndarray | None = None) -> dict:
+    def update(self, rgb: np.ndarray, normal: np.ndarray | None = None, roughness: np.ndarray | None = None,
+               changed: tuple[int, np.ndarray] | None = None) -> dict:
         """Publish the tiles whose maps changed since their last publication, and send every browser the tiles it
         lacks. All maps in image orientation (row 0 is v = 1), the same (H, W):
         rgb: (H, W, 3) uint8 base colour, sRGB.
@@ -544,6 +547,10 @@ class TextureStream:
         (toward row 0, i.e. +v), B = z out of the surface; 128 is 0 (n = value / 127.5 - 1).
         roughness: (H, W) uint8 PBR roughness * 255, or None (then the constant roughness given to the constructor).
         A tile is published when any of its crops changed; its change is the largest over the maps (levels).
+        changed: (tile, flags) from the maps' maker: only texels in the tile x tile blocks flagged in flags ((rows,
+        cols) bool, row-major from row 0) may differ from the maps of the last update (sims.scene.Scene.
+        take_display_changes); the stream then compares only the tiles whose crops meet a flagged block, and those it
+        has left waiting. None: any texel may have changed (every tile is compared).
         Returns {"tiles_sent": int, "bytes": int}: tile versions published (each map encoded once, then the GLB sent
         to every browser that keeps up) and their GLB bytes (what viser gets per browser), and "tiles_deferred":
         changed tiles left for a later update by the rate limit or settling."""
@@ -573,6 +580,7 @@ class TextureStream:
                 self._layout(*layout)
             if self._pad is not None:  # half-resolution maps of an odd-sized image: crops may reach one texel past it
                 maps = {kind: np.pad(image, self._pad[:image.ndim], mode="edge") for kind, image in maps.items()}
+            self._mark_candidates(changed)
             result = self._publish(maps, now)
             self._deliver(now)
             self.stats["updates"] += 1
@@ -599,6 +607,7 @@ class TextureStream:
         """Crop boxes and GLB geometry for maps of this (H, W) and these kinds; every tile is published and sent
         again."""
         self._shape = (tuple(shape), tuple(maps))
+        self._candidates = set(range(len(self._tiles)))
         even = any(self.divisors[kind] == 2 for kind in maps)
         odd = [(0, int(even and size % 2)) for size in shape]
         self._pad = odd + [(0, 0)] if any(pad for _, pad in odd) else None
@@ -606,6 +615,20 @@ class TextureStream:
             tile.geometry = _TileGeometry(tile.positions, tile.uv, tile.faces, tile.morph_ids, tile.morph_delta, self.grid,
                                           shape, _MARGIN_TEXELS, self.roughness, maps, even)
             tile.sent, tile.encoded, tile.glb, tile.version = None, None, None, -1
+
+    def _mark_candidates(self, changed: tuple[int, np.ndarray] | None) -> None:
+        """Add the tiles whose crops meet a block flagged in changed (all tiles for None) to the candidates."""
+        if changed is None:
+            self._candidates.update(range(len(self._tiles)))
+            return
+        block, flags = changed
+        flags = np.asarray(flags, bool)
+        if not flags.any():
+            return
+        for index, tile in enumerate(self._tiles):
+            box = tile.geometry
+            if flags[box.r0 // block:-(-box.r1 // block), box.c0 // block:-(-box.c1 // block)].any():
+                self._candidates.add(index)
 
     def _publish(self, maps: dict, now: float) -> dict:
         """Encode the changed tiles, most urgent first, within the token bucket (a tile's first version is free); of a
@@ -631,6 +654,7 @@ class TextureStream:
             tile.glb = tile.geometry.glb([tile.encoded[kind] for kind in tile.geometry.maps])
             tile.sent, tile.sent_at, tile.version = crops, now, self._publications
             self._publications += 1
+            self._candidates.discard(tile.index)
         return {"tiles_sent": len(chosen), "bytes": sum(len(tile.glb) for tile, _, _ in chosen), "tiles_deferred": deferred}
 
     def _deliver(self, now: float) -> None:
@@ -661,7 +685,8 @@ class TextureStream:
         (levels) times (1 + seconds waited); and the number of tiles whose change (below min_change levels) waits for
         settle_s since the tile's last publication."""
         scored, settling = [], 0
-        for tile in self._tiles:
+        for index in sorted(self._candidates):
+            tile = self._tiles[index]
             if tile.sent is None:
                 scored.append((float("inf"), tile))
                 continue
@@ -671,6 +696,7 @@ class TextureStream:
                 if not np.array_equal(tile.sent[kind], crop):
                     change = max(change, int(np.abs(tile.sent[kind].astype(np.int16) - crop).max()))
             if change == 0:
+                self._candidates.discard(index)  # as published: nothing to do until a change reaches it
                 continue
             waited = now - tile.sent_at
             if change < self.min_change and waited < self.settle_s:

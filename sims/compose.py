@@ -32,6 +32,8 @@ import numpy as np
 import taichi as ti
 from PIL import Image
 
+from sims.display_tiles import BLOOD_COLUMNS, BLOOD_ROWS, BLOOD_SAMPLE, NORMAL, TISSUE, WRITE
+
 FIELD_CODES = {"coagulation": 0, "char": 1, "omega": 2, "temperature_c": 3, "coagulation_depth_mm": 4}
 BLOOD_MU_A_OXY = (0.16, 23.9, 31.8)     # 1/mm, red / green / blue = 650 / 550 / 450 nm (module docstring)
 BLOOD_MU_A_DEOXY = (1.80, 26.0, 40.3)   # 1/mm
@@ -140,40 +142,77 @@ class Composer:
         self.tissue = ti.Vector.field(2, ti.f32, (height, width))   # tissue height (mm), roughness at surface texels
         self.tissue.from_numpy(surfaces[0].astype(np.float32))
         self.relief = ti.field(ti.f32, (height, width))             # surface height with blood (mm), every texel
-        self.blood = ti.field(ti.f32, (height, width))              # blood depth at display texels (mm), smoothed
-        self.blood_tmp = ti.field(ti.f32, (height, width))
+        self.blood_raw = ti.field(ti.f32, (height, width))          # blood depth at display texels (mm), as read
+        self.blood_tmp = ti.field(ti.f32, (height, width))          # ... smoothed along rows
+        self.blood = ti.field(ti.f32, (height, width))              # ... and along columns
         self.rgb = ti.Vector.field(3, ti.u8, (height, width))
         self.normal = ti.Vector.field(3, ti.u8, (height, width))
         self.roughness = ti.field(ti.u8, (height, width))
+        self.shown = tuple(np.zeros((height, width) + tail, np.uint8) for tail in ((3,), (3,), ()))  # rgb, normal, roughness
         self.count = count
         self.texel_mm = float(texel_mm)
         self._linearize()
 
     def compose(self, tiles, heat=None, film=None) -> np.ndarray:
         """(H, W, 3) uint8 base colour from the models present (each may be None; heat: sims.heat_display.HeatDisplay,
-        film: sims.film.BloodFilm); normal and roughness follow (maps()). The tissue is recomposed only on the tiles
-        that tiles (sims.display_tiles.DisplayTiles) flags, the others keep theirs; blood covers every tile."""
-        if tiles.listed and heat is not None:
+        film: sims.film.BloodFilm); normal and roughness follow (maps()). Only the tiles that tiles
+        (sims.display_tiles.DisplayTiles) flags are recomposed and copied out; the others keep theirs. The arrays
+        returned are read-only and never change: a compose that changes something returns new ones."""
+        kinds = tiles.kinds
+        if kinds & TISSUE and heat is not None:
             self._tissue(heat, tiles)
         if film is not None:
-            film.take_near()
-            self._blood_depth(film, film.display_per_texel // 2)
-            self._with_blood(film)
-        elif tiles.listed:
+            if kinds & BLOOD_SAMPLE:
+                self._blood_depth(film, tiles, film.display_per_texel // 2)
+            if kinds & WRITE:
+                self._with_blood(film, tiles)
+        elif kinds & WRITE:
             self._plain(tiles)
-        if film is not None or tiles.listed:
-            self._normals(self.texel_mm)
-        return self.rgb.to_numpy()
+        if kinds & NORMAL:
+            self._normals(tiles, self.texel_mm)
+        written = tiles.written()
+        if len(written):
+            self._copy_out(tiles, written)
+        return self.shown[0]
 
     def maps(self) -> tuple[np.ndarray, np.ndarray]:
         """(normal (H, W, 3) uint8, roughness (H, W) uint8) of the last compose()."""
-        return self.normal.to_numpy(), self.roughness.to_numpy()
+        return self.shown[1], self.shown[2]
+
+    def _copy_out(self, tiles, written: np.ndarray) -> None:
+        """Copy the written tiles' maps from the device into new copies of the shown arrays (one transfer each)."""
+        t = tiles.tile
+        out = [np.empty((len(written), t, t) + tail, np.uint8) for tail in ((3,), (3,), ())]
+        self._pack(tiles.tile, tiles.cols, written, *out)
+        height, width = self.fill.shape
+        shown = []
+        for old, packed in zip(self.shown, out):
+            padded = np.zeros((tiles.rows * t, tiles.cols * t) + old.shape[2:], np.uint8)
+            padded[:height, :width] = old
+            view = padded.reshape(tiles.rows, t, tiles.cols, t, *old.shape[2:]).swapaxes(1, 2)
+            view[written // tiles.cols, written % tiles.cols] = packed
+            new = np.ascontiguousarray(padded[:height, :width])
+            new.flags.writeable = False
+            shown.append(new)
+        self.shown = tuple(shown)
+
+    @ti.kernel
+    def _pack(self, tile: ti.i32, cols: ti.i32, written: ti.types.ndarray(), rgb: ti.types.ndarray(),
+              normal: ti.types.ndarray(), roughness: ti.types.ndarray()):
+        height, width = self.fill.shape
+        for k, i, j in ti.ndrange(written.shape[0], tile, tile):
+            r, c = written[k] // cols * tile + i, written[k] % cols * tile + j
+            if r < height and c < width:
+                for d in ti.static(range(3)):
+                    rgb[k, i, j, d] = self.rgb[r, c][d]
+                    normal[k, i, j, d] = self.normal[r, c][d]
+                roughness[k, i, j] = self.roughness[r, c]
 
     @ti.kernel
     def _tissue(self, heat: ti.template(), tiles: ti.template()):
         """Tissue colour and surface of the flagged tiles' surface texels, from the burn read there."""
         for r, c in self.color:
-            if tiles.flagged(r, c) and self.fill[r, c] == r * self.fill.shape[1] + c:
+            if tiles.flagged(r, c, TISSUE) and self.fill[r, c] == r * self.fill.shape[1] + c:
                 color, surface = self.textures[0, r, c], self.surfaces[0, r, c]
                 omega, char, temperature, depth = 0.0, 0.0, 0.0, 0.0
                 if ti.static(self.reads_omega):
@@ -225,35 +264,41 @@ class Composer:
     @ti.kernel
     def _plain(self, tiles: ti.template()):
         for r, c in self.rgb:
-            if tiles.flagged(r, c):
+            if tiles.flagged(r, c, WRITE):
                 sr, sc = self._source(r, c)
                 self._write(r, c, self.color[sr, sc], self.tissue[sr, sc][0], self.tissue[sr, sc][1])
 
     @ti.kernel
-    def _blood_depth(self, film: ti.template(), radius: ti.i32):
+    def _blood_depth(self, film: ti.template(), tiles: ti.template(), radius: ti.i32):
         """blood = the film's trail at each texel's fill source, smoothed by a tent of `radius` texels (half a texel of
         the film's grid): read bilinearly alone, a coarser film is linear within each of its cells, so its contours
-        (the wet edge) are cell-shaped and its slope (the lighting) changes in facets; the tent makes it smooth."""
+        (the wet edge) are cell-shaped and its slope (the lighting) changes in facets; the tent makes it smooth. Each
+        pass runs on the tiles whose input changed (sims.display_tiles)."""
         height, width = self.blood.shape
         for r, c in self.blood:
-            sr, sc = self._source(r, c)
-            self.blood[r, c] = film.sample(film.trail, sr, sc) if film.is_near(sr, sc) else 0.0
+            if tiles.flagged(r, c, BLOOD_SAMPLE):
+                sr, sc = self._source(r, c)
+                self.blood_raw[r, c] = film.sample(film.trail, sr, sc) if film.is_near(sr, sc) else 0.0
         for r, c in self.blood:
-            total = 0.0
-            if film.is_near(r, c):
-                for k in range(-radius, radius + 1):
-                    total += self.blood[r, ti.min(ti.max(c + k, 0), width - 1)] * (radius + 1 - ti.abs(k))
-            self.blood_tmp[r, c] = total / ((radius + 1) * (radius + 1))
+            if tiles.flagged(r, c, BLOOD_ROWS):
+                total = 0.0
+                if film.is_near(r, c):
+                    for k in range(-radius, radius + 1):
+                        total += self.blood_raw[r, ti.min(ti.max(c + k, 0), width - 1)] * (radius + 1 - ti.abs(k))
+                self.blood_tmp[r, c] = total / ((radius + 1) * (radius + 1))
         for r, c in self.blood:
-            total = 0.0
-            if film.is_near(r, c):
-                for k in range(-radius, radius + 1):
-                    total += self.blood_tmp[ti.min(ti.max(r + k, 0), height - 1), c] * (radius + 1 - ti.abs(k))
-            self.blood[r, c] = total / ((radius + 1) * (radius + 1))
+            if tiles.flagged(r, c, BLOOD_COLUMNS):
+                total = 0.0
+                if film.is_near(r, c):
+                    for k in range(-radius, radius + 1):
+                        total += self.blood_tmp[ti.min(ti.max(r + k, 0), height - 1), c] * (radius + 1 - ti.abs(k))
+                self.blood[r, c] = total / ((radius + 1) * (radius + 1))
 
     @ti.kernel
-    def _with_blood(self, film: ti.template()):
+    def _with_blood(self, film: ti.template(), tiles: ti.template()):
         for r, c in self.rgb:
+            if not tiles.flagged(r, c, WRITE):
+                continue
             sr, sc = self._source(r, c)
             h = self.blood[r, c]
             stain_mm = film.sample(film.stain, sr, sc)
@@ -274,11 +319,13 @@ class Composer:
                     self.rgb[r, c][k] = self.encode[index]
 
     @ti.kernel
-    def _normals(self, texel_mm: ti.f32):
+    def _normals(self, tiles: ti.template(), texel_mm: ti.f32):
         """Normal map from the slope of relief at each texel's fill source (central differences, one-sided at the
-        texture's border)."""
+        texture's border), on the tiles flagged NORMAL."""
         height, width = self.relief.shape
         for r, c in self.normal:
+            if not tiles.flagged(r, c, NORMAL):
+                continue
             sr, sc = self._source(r, c)
             left, right = ti.max(sc - 1, 0), ti.min(sc + 1, width - 1)
             up, down = ti.max(sr - 1, 0), ti.min(sr + 1, height - 1)

@@ -1,12 +1,20 @@
-"""Which tiles of the display texture to recompose: those a change of the heat grid's tiles can reach.
+"""Which tiles of the display texture the look recomposes: those a change of the burn or of the blood can reach.
 
-A display texel shows the colour composed at its fill source (itself on the surface, the nearest surface texel in
-the gutters), and that colour reads the heat grid at the source's taps (sims.resample; the texel itself when both
-grids are one). So a display tile must be recomposed when any heat tile under the taps of its texels or of their
-fill sources changed; every other tile would come out byte for byte as it is. select() flags those tiles for the
-look's kernels (sims.compose), which loop over every display texel and skip the unflagged tiles: a loop over the
-texture's own layout measured 2.4 times cheaper per texel than one over a list of tiles (35 against 100 ns per texel
-on one core), and skipping a texel costs next to nothing.
+A display texel shows the look composed at its fill source (itself on the surface, the nearest surface texel in the
+gutters). The tissue there reads the heat grid at the source's taps (sims.resample; the texel itself when both grids
+are one), the blood reads the film's grid the same way, and then smooths the film over `blood_reach` texels in two
+separable passes (sims.compose). The normal map reads the surface height one texel around the fill source. So per
+compose, from the heat tiles and the film tiles that changed:
+- TISSUE: display tiles reached by a changed heat tile (the tissue's colour and surface are recomposed there);
+- BLOOD_SAMPLE: reached by a changed film tile; BLOOD_ROWS: those grown left and right by the smoothing's reach (its
+  pass along rows); BLOOD_COLUMNS: those grown up and down (its pass along columns);
+- WRITE: TISSUE or BLOOD_COLUMNS (colour, roughness and height are written);
+- NORMAL: tiles whose texels' fill sources lie within a texel of a WRITE tile (the normal map is recomputed).
+Every other tile would come out byte for byte as it is. select() sets these as bits of `flags` for the look's kernels,
+which loop over every display texel and skip the unflagged tiles: a loop over the texture's own layout measured 2.4
+times cheaper per texel than one over a list of tiles (35 against 100 ns per texel on one core), and skipping a texel
+costs next to nothing. The tiles written (WRITE or NORMAL) since a front end last asked are kept for take_changed(),
+so a texture stream compares and encodes only those.
 """
 import numpy as np
 import scipy.sparse
@@ -15,54 +23,102 @@ import taichi as ti
 from sims.tiles import tile_grid, tile_index
 
 DISPLAY_TILE = 16  # display texels per tile side
+TISSUE, BLOOD_SAMPLE, BLOOD_ROWS, BLOOD_COLUMNS, WRITE, NORMAL = (1 << bit for bit in range(6))
+
+
+def _reads(taps: np.ndarray | None, fill_index: np.ndarray, source_shape, source_tile: int, tile: int):
+    """CSR (source tiles, display tiles): which display tiles read a source grid's tile, through each display texel's
+    taps (H * W, K) on that grid (None: the display grid itself) and those of its fill source."""
+    height, width = fill_index.shape
+    texels = np.arange(height * width)
+    taps = texels[:, None] if taps is None else np.asarray(taps, np.int64)
+    source = tile_index(taps, source_shape[1], source_tile)  # (H * W, K) source tiles each texel reads
+    own = np.repeat(tile_index(texels, width, tile), source.shape[1])
+    shown = np.concatenate([source.ravel(), source[fill_index.ravel()].ravel()])  # its own, then its fill's
+    count = int(np.prod(tile_grid(source_shape, source_tile)))
+    matrix = scipy.sparse.csr_matrix((np.ones(len(shown), np.int32), (shown, np.concatenate([own, own]))),
+                                     shape=(count, int(np.prod(tile_grid((height, width), tile)))))
+    matrix.data[:] = 1
+    return matrix
+
+
+def _grow(flags: np.ndarray, rows: int, cols: int) -> np.ndarray:
+    """(R, C) bool flags grown by `rows` tiles up and down and `cols` tiles left and right."""
+    padded = np.pad(flags, ((rows, rows), (cols, cols)))
+    return np.any([padded[rows + dr:rows + dr + flags.shape[0], cols + dc:cols + dc + flags.shape[1]]
+                   for dr in range(-rows, rows + 1) for dc in range(-cols, cols + 1)], axis=0)
 
 
 @ti.data_oriented
 class DisplayTiles:
-    """The display grid's tiles and the heat tiles each one reads (module docstring); `dirty` and `listed` after
-    select()."""
+    """The display grid's tiles and what each reads (module docstring); `flags` and `listed` after select()."""
 
-    def __init__(self, fill_index: np.ndarray, heat_taps: np.ndarray | None, heat_shape: tuple[int, int], heat_tile: int,
-                 tile: int = DISPLAY_TILE):
-        """fill_index: (H, W) flat display index of each texel's fill source; heat_taps: (H * W, K) flat heat-grid
-        indices each display texel reads (None: the heat grid is the display grid); heat_tile: the heat tiles' side."""
-        height, width = fill_index.shape
-        rows, self.cols = tile_grid(fill_index.shape, tile)
-        self.tile, self.tiles = tile, rows * self.cols
-        texels = np.arange(height * width)
-        taps = texels[:, None] if heat_taps is None else np.asarray(heat_taps, np.int64)
-        heat = tile_index(taps, heat_shape[1], heat_tile)  # (H * W, K) heat tiles each texel's colour reads
-        own = np.repeat(tile_index(texels, width, tile), heat.shape[1])
-        shown = np.concatenate([heat.ravel(), heat[fill_index.ravel()].ravel()])  # its own colour, then its fill's
-        heat_tiles = int(np.prod(tile_grid(heat_shape, heat_tile)))
-        self.reads = scipy.sparse.csr_matrix((np.ones(len(shown), np.int32), (shown, np.concatenate([own, own]))),
-                                             shape=(heat_tiles, self.tiles))  # heat tile -> display tiles it reaches
-        self.dirty = ti.field(ti.i32, self.tiles)  # 1: recompose this tile
-        self.listed = 0
-        self._fresh = True  # nothing composed yet: the first select() flags every tile
+    def __init__(self, fill_index: np.ndarray, heat=None, film=None, blood_reach: int = 0, tile: int = DISPLAY_TILE):
+        """fill_index: (H, W) flat display index of each texel's fill source. heat, film: (taps, grid shape, grid
+        tile) of the burn's and the blood's grids, or None for a model the scene does not run; taps (H * W, K) are the
+        flat grid indices each display texel reads (None: that grid is the display grid). blood_reach: display texels
+        over which the look smooths the film in each pass."""
+        self.shape = fill_index.shape
+        self.grid = tile_grid(fill_index.shape, tile)
+        self.rows, self.cols = self.grid
+        self.tile, self.tiles = tile, self.rows * self.cols
+        self.heat_reads = None if heat is None else _reads(heat[0], fill_index, heat[1], heat[2], tile)
+        self.film_reads = None if film is None else _reads(film[0], fill_index, film[1], film[2], tile)
+        self.blood_reach = -(-int(blood_reach) // tile)  # tiles per smoothing pass
+        # display tile -> display tiles whose texels' fill sources lie in it (the normal map reads around the source)
+        self.fill_reads = _reads(None, fill_index, fill_index.shape, tile, tile)
+        self.flags = ti.field(ti.i32, self.tiles)
+        self.listed = 0                 # tiles flagged WRITE or NORMAL by the last select()
+        self.kinds = 0                  # the OR of every tile's flags at the last select()
+        self._changed = np.zeros(self.grid, bool)
+        self._last_written = np.zeros(self.tiles, bool)
+        self._fresh = True              # nothing composed yet: the first select() flags every tile
 
-    def select(self, changed_heat: np.ndarray | None) -> int:
-        """Flag the display tiles to recompose and return how many: those reached by the changed heat tiles
-        ((T_heat,) bool; None: none changed), every tile the first time."""
+    def select(self, changed_heat: np.ndarray | None, changed_film: np.ndarray | None) -> int:
+        """Flag the tiles to recompose from the changed heat tiles and film tiles (bool, row-major over each grid;
+        None: none changed), every tile the first time. Returns how many tiles are written."""
         if self._fresh:
-            dirty = np.ones(self.tiles, bool)
             self._fresh = False
-        elif changed_heat is None or not changed_heat.any():
-            dirty = np.zeros(self.tiles, bool)
-        else:
-            dirty = (self.reads.T @ changed_heat.astype(np.int32)) > 0
-        self.listed = int(dirty.sum())
-        if self.listed:
-            self.dirty.from_numpy(dirty.astype(np.int32))
-        return self.listed
+            return self.select_all()
+        none = np.zeros(self.tiles, bool)
+        tissue = none if changed_heat is None or self.heat_reads is None else \
+            (self.heat_reads.T @ np.ravel(changed_heat).astype(np.int32)) > 0
+        blood = none if changed_film is None or self.film_reads is None else \
+            (self.film_reads.T @ np.ravel(changed_film).astype(np.int32)) > 0
+        if not (tissue.any() or blood.any()):
+            return self._set(np.zeros(self.tiles, np.int32))
+        rows = _grow(blood.reshape(self.grid), 0, self.blood_reach)  # the pass along rows reads left and right
+        columns = _grow(rows, self.blood_reach, 0)                   # the pass along columns up and down
+        write = tissue.reshape(self.grid) | columns
+        normal = (self.fill_reads.T @ _grow(write, 1, 1).ravel().astype(np.int32)) > 0
+        flags = (TISSUE * tissue + BLOOD_SAMPLE * blood + BLOOD_ROWS * rows.ravel() + BLOOD_COLUMNS * columns.ravel()
+                 + WRITE * write.ravel() + NORMAL * normal).astype(np.int32)
+        return self._set(flags)
 
     def select_all(self) -> int:
-        """Flag every tile (a full pass)."""
-        self.dirty.fill(1)
-        self.listed = self.tiles
+        """Flag every tile for everything (a full pass)."""
+        return self._set(np.full(self.tiles, TISSUE | BLOOD_SAMPLE | BLOOD_ROWS | BLOOD_COLUMNS | WRITE | NORMAL, np.int32))
+
+    def _set(self, flags: np.ndarray) -> int:
+        self.kinds = int(np.bitwise_or.reduce(flags))
+        if self.kinds:
+            self.flags.from_numpy(flags)
+        written = (flags & (WRITE | NORMAL)) != 0
+        self._changed |= written.reshape(self.grid)
+        self._last_written = written
+        self.listed = int(written.sum())
         return self.listed
 
+    def take_changed(self) -> np.ndarray:
+        """(rows, cols) bool over the tiles: those written since the last call (DISPLAY_TILE texels a side)."""
+        changed, self._changed = self._changed, np.zeros(self.grid, bool)
+        return changed
+
+    def written(self) -> np.ndarray:
+        """(N,) int32 row-major indices of the tiles the last select() flagged WRITE or NORMAL."""
+        return np.flatnonzero(self._last_written).astype(np.int32)
+
     @ti.func
-    def flagged(self, r, c):
-        """Whether display texel (r, c) lies in a tile to recompose."""
-        return self.dirty[(r // self.tile) * self.cols + c // self.tile]
+    def flagged(self, r, c, kind: ti.template()):
+        """Whether display texel (r, c) lies in a tile flagged `kind` (one of the bits above)."""
+        return self.flags[(r // self.tile) * self.cols + c // self.tile] & kind

@@ -6,9 +6,12 @@ splat) and the look keeps, per texel of that grid,
     trail = max(fresh, exp(-dt / blood_trail_s) * trail)      (traces of moving blood linger about blood_trail_s)
     stain = max(stain, fresh)                                  (the deepest blood ever there: a dried stain stays)
 
-so what a picture shows depends on the simulated time only, never on how often a front end asks for one. The composer
-(sims.compose) reads trail, stain and the method's clot fraction at display texels through sample(): bilinearly
-(sims.resample) when the method runs on a coarser grid.
+so what a picture shows depends on the simulated time only, never on how often a front end asks for one. A trail that
+decays below TRAIL_FLOOR_MM is dry (0): a finished bleed stops costing anything a few blood_trail_s later. The
+composer (sims.compose) reads trail, stain and the method's clot fraction at display texels through sample():
+bilinearly (sims.resample) when the method runs on a coarser grid. Each step flags the tiles of the film's grid (about
+DISPLAY_TEXELS_PER_TILE display texels a side, at least NEAR_TEXELS film texels) where a trail or a stain may have changed (fresh blood or a trail there); take_touched() hands them to the look,
+which recomposes only the display tiles they reach.
 """
 import math
 
@@ -21,6 +24,8 @@ SPLAT_SCALE = 1024  # fixed-point units of one particle in the splat grid (integ
 MAX_FILTER_TEXELS = 64
 SPLAT_TILE = 16    # texels per side of the particles' filter tiles (ParticleSplat)
 NEAR_TEXELS = 2    # film texels about a wet one whose display texels the look smooths (BloodFilm.take_near)
+DISPLAY_TEXELS_PER_TILE = 16  # BloodFilm's touched tiles cover about this many display texels a side
+TRAIL_FLOOR_MM = 1e-4  # a decaying trail thinner than this is dry: 0.1 um of blood changes no colour level
 
 
 @ti.data_oriented
@@ -115,12 +120,17 @@ class BloodFilm(GridReader):
         self.trail = ti.field(ti.f32, shape)  # mm
         self.stain = ti.field(ti.f32, shape)  # mm
         self.near = ti.field(ti.i32, shape)   # 1: the trail is not zero within NEAR_TEXELS of this texel (take_near)
+        self.tile = max(NEAR_TEXELS, round(DISPLAY_TEXELS_PER_TILE / self.display_per_texel))  # film texels a side
+        self.tile_shape = (-(-shape[0] // self.tile), -(-shape[1] // self.tile))
+        self.touched = ti.field(ti.i32, self.tile_shape)  # 1: a trail or stain in this tile may have changed
         self.reset()
 
     def reset(self) -> None:
+        """Dry, and every tile touched (what was shown before goes)."""
         self.trail.fill(0.0)
         self.stain.fill(0.0)
         self.near.fill(0)
+        self.touched.fill(1)
 
     def advance(self, dt_s: float, trail_s: float) -> None:
         """After a step of dt_s: take the method's film and keep the trail and the stain."""
@@ -130,23 +140,45 @@ class BloodFilm(GridReader):
     @ti.kernel
     def _keep(self, decay: ti.f32):
         for r, c in self.fresh:
-            fresh = self.fresh[r, c]
-            self.trail[r, c] = ti.max(fresh, decay * self.trail[r, c])
-            self.stain[r, c] = ti.max(self.stain[r, c], fresh)
+            fresh, trail = self.fresh[r, c], self.trail[r, c]
+            if fresh > 0.0 or trail > 0.0:
+                kept = decay * trail
+                self.trail[r, c] = ti.max(fresh, ti.select(kept >= TRAIL_FLOOR_MM, kept, 0.0))
+                self.stain[r, c] = ti.max(self.stain[r, c], fresh)
+                self.touched[r // self.tile, c // self.tile] = 1
+
+    def take_touched(self) -> np.ndarray:
+        """(tile rows, tile columns) bool: the film tiles whose trail or stain may have changed since the last call,
+        with their neighbours (whose near flags may have changed); near is brought up to date on them."""
+        touched = self.touched.to_numpy().astype(bool)
+        if touched.any():
+            padded = np.pad(touched, 1)
+            touched = np.any([padded[1 + dr:1 + dr + touched.shape[0], 1 + dc:1 + dc + touched.shape[1]]
+                              for dr in (-1, 0, 1) for dc in (-1, 0, 1)], axis=0)
+            self._take_near()
+            self.touched.fill(0)
+        return touched
 
     @ti.kernel
-    def take_near(self):
-        """near = whether the trail is not zero within NEAR_TEXELS texels of this grid: a display texel whose
-        heaviest tap is not near reads a zero trail within the look's smoothing (half a texel of this grid), so the
-        look skips it."""
+    def _take_near(self):
+        """near = whether the trail is not zero within NEAR_TEXELS texels of this grid, on the touched tiles and their
+        neighbours (elsewhere the trail did not change): a display texel whose heaviest tap is not near reads a zero
+        trail within the look's smoothing (half a texel of this grid), so the look skips it."""
         height, width = self.near.shape
+        rows, cols = self.touched.shape
         for r, c in self.near:
-            found = 0
-            for dr, dc in ti.ndrange((-NEAR_TEXELS, NEAR_TEXELS + 1), (-NEAR_TEXELS, NEAR_TEXELS + 1)):
-                rr, cc = ti.min(ti.max(r + dr, 0), height - 1), ti.min(ti.max(c + dc, 0), width - 1)
-                if self.trail[rr, cc] > 0.0:
-                    found = 1
-            self.near[r, c] = found
+            tr, tc = r // self.tile, c // self.tile
+            busy = 0
+            for dr, dc in ti.static(ti.ndrange((-1, 2), (-1, 2))):
+                if 0 <= tr + dr < rows and 0 <= tc + dc < cols and self.touched[tr + dr, tc + dc]:
+                    busy = 1
+            if busy:
+                found = 0
+                for dr, dc in ti.ndrange((-NEAR_TEXELS, NEAR_TEXELS + 1), (-NEAR_TEXELS, NEAR_TEXELS + 1)):
+                    rr, cc = ti.min(ti.max(r + dr, 0), height - 1), ti.min(ti.max(c + dc, 0), width - 1)
+                    if self.trail[rr, cc] > 0.0:
+                        found = 1
+                self.near[r, c] = found
 
     @ti.func
     def is_near(self, r, c):

@@ -17,10 +17,6 @@ class HeatDisplay(GridReader):
         super().__init__(resampler)
         self.cautery = cautery
 
-    def heat_taps(self) -> np.ndarray | None:
-        """(H * W, K) flat heat-grid texels each display texel reads; None when heat runs on the display grid."""
-        return None if self.resampler is None else self.resampler.taps_np
-
     def coarse_texel(self, texel_rc) -> tuple[int, int]:
         """The heat-grid texel under a display texel."""
         return tuple(texel_rc) if self.resampler is None else self.resampler.coarse_texel(texel_rc)

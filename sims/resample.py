@@ -112,6 +112,10 @@ class GridReader:
         self.resampler = resampler
         self.same_grid = resampler is None
 
+    def taps(self) -> np.ndarray | None:
+        """(H * W, K) flat texels of the model's grid each display texel reads; None when it runs on the display grid."""
+        return None if self.resampler is None else self.resampler.taps_np
+
     @ti.func
     def sample(self, field: ti.template(), r, c):
         """A field of the model's grid (scalar or vector) at display texel (r, c)."""

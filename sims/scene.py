@@ -188,11 +188,13 @@ class Scene:
             self._texel_tree = cKDTree(self.surface.position_mm[rows, cols])
         texel_mm = float(np.sqrt(np.median(self.surface.texel_area_mm2[self.surface.mask])))
         self.composer = Composer(config["look"]["stages"], textures, surfaces, self.surface.fill_index, texel_mm)
-        if self.cautery is None:
-            self.display_tiles = DisplayTiles(self.surface.fill_index, None, self.surface.mask.shape, DISPLAY_TILE)
-        else:
-            self.display_tiles = DisplayTiles(self.surface.fill_index, self.heat_display.heat_taps(),
-                                              self.heat_surface.mask.shape, self.cautery.tiles.tile)
+        heat = film = None
+        if self.cautery is not None:
+            heat = (self.heat_display.taps(), self.heat_surface.mask.shape, self.cautery.tiles.tile)
+        if self.film is not None:
+            film = (self.film.taps(), self.film.trail.shape, self.film.tile)
+        self.display_tiles = DisplayTiles(self.surface.fill_index, heat, film,
+                                          0 if self.film is None else self.film.display_per_texel // 2, DISPLAY_TILE)
 
     @classmethod
     def from_file(cls, path, overrides=(), arch: str = "auto") -> "Scene":
@@ -571,15 +573,19 @@ class Scene:
         """The display texture's base colour (H, W, 3) uint8, image orientation (row 0 = v 1); material_maps() then
         gives its normal and roughness maps. It shows the state after the last step, whenever it is called."""
         with self._timed("compose"):
-            if self.cautery is None:
-                self.display_tiles.select(None)
-                return self.composer.compose(self.display_tiles, None, self.film)
-            self.display_tiles.select(self.cautery.take_changed_tiles(self.composer.shows_temperature))
-            return self.composer.compose(self.display_tiles, self.heat_display, self.film)
+            heat = None if self.cautery is None else self.cautery.take_changed_tiles(self.composer.shows_temperature)
+            film = None if self.film is None else self.film.take_touched()
+            self.display_tiles.select(heat, film)
+            return self.composer.compose(self.display_tiles, None if self.cautery is None else self.heat_display, self.film)
 
     def material_maps(self) -> tuple[np.ndarray, np.ndarray]:
         """(normal (H, W, 3) uint8, roughness (H, W) uint8) of the last composite() (sims.compose.Composer)."""
         return self.composer.maps()
+
+    def take_display_changes(self) -> tuple[int, np.ndarray]:
+        """(tile, flags): the display tiles (tile texels a side; flags (rows, cols) bool, row-major from row 0) whose
+        maps changed in the composites since the last call; a texture stream compares and encodes only those."""
+        return self.display_tiles.tile, self.display_tiles.take_changed()
 
     def state_arrays(self, display_grid: bool = True) -> dict:
         """Arrays of DESIGN section 4 for the models this scene runs; display_grid False: each on its model's own grid

@@ -95,6 +95,11 @@ def test_quick_bench_writes_finite_numbers_and_plots_for_every_section(tmp_path)
     assert scenes["default.yaml"]["ms_per_simulated_s"]["bleeding"] == 0.0
     assert scenes["hemostasis.yaml"]["ms_per_simulated_s"]["cautery"] > 0.0 and scenes["hemostasis.yaml"]["ms_per_simulated_s"]["bleeding"] > 0.0
     assert finite_numbers(results)
+    activity = {row["case"]: row for row in results["activity"]["rows"]}
+    assert set(activity) == {"idle", "one tool", "two tools", "one bleed point", "four bleed points"}
+    assert activity["idle"]["hot_tiles_awake"] == 0 and activity["two tools"]["hot_tiles_awake"] > 0
+    assert activity["idle"]["blood_ml"] == 0.0 < activity["four bleed points"]["blood_ml"]
+    assert 0.0 < results["activity"]["idle_lab"]["cpu_share"]
     methods = {(row["case"], row["method"]): row for row in results["bleeding_methods"]["cases"]}
     hollow = {m["quantity"]: m["error_rel"] for m in methods[("hollow", "height_field")]["measures"]}
     assert all(abs(error) < 0.05 for error in hollow.values()), "the height field pools as a level pool"

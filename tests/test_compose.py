@@ -56,3 +56,22 @@ def test_an_idle_scene_recomposes_nothing():
         scene.step()
     assert np.array_equal(scene.composite(), first) and scene.display_tiles.listed == 0
     assert scene.cautery.tiles.awake == 0
+
+
+@pytest.mark.parametrize("scene_file, method", [("bleeding.yaml", "height_field"), ("bleeding.yaml", "particles"),
+                                                ("hemostasis.yaml", "height_field")])
+def test_recomposing_where_the_blood_changed_shows_what_a_full_pass_shows(scene_file, method):
+    """Blood spreads, is sucked away, clots and leaves stains; the look recomposes only the tiles the film's touched
+    tiles reach (sims.film, sims.display_tiles), and every map equals a pass over every tile."""
+    from sims.scene import Scene
+
+    scene = Scene.from_file(REPO_ROOT / "scenes" / scene_file, ["texture_size=256", f"bleeding.method={method}"])
+    written = []
+    for _ in range(10):
+        for _ in range(30):
+            scene.step()
+        shown = shown_maps(scene)
+        written.append(scene.display_tiles.listed)
+        for name, partial, full in zip(("colour", "normal", "roughness"), shown, full_pass(scene)):
+            assert np.array_equal(partial, full), f"{name} at t = {scene.time_s:.2f} s"
+    assert 0 < max(written) and min(written) < scene.display_tiles.tiles  # partial passes, and blood was recomposed

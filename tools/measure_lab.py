@@ -69,8 +69,8 @@ def open_lab(size: int | None, arch: str, simple_lighting: bool = False):
     log = []  # (monotonic s, tiles_sent, bytes, tiles_deferred, rgb)
     update = app.stream.update
 
-    def logged(rgb, *maps):
-        result = update(rgb, *maps)
+    def logged(rgb, *maps, **options):
+        result = update(rgb, *maps, **options)
         log.append((time.monotonic(), result["tiles_sent"], result["bytes"], result["tiles_deferred"], np.array(rgb)))
         del log[:-60]  # the images of the last 2 s or so (the counts go to totals)
         logged.totals.append((log[-1][0], result["tiles_sent"], result["bytes"], result["tiles_deferred"]))

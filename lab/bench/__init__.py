@@ -11,7 +11,7 @@ from tqdm import tqdm
 from lab.bench.common import cpu_ticks, device_description, stolen_share
 from sims import backend
 
-SECTIONS = ("heat", "heat_reference", "heat_layers", "damage", "bleeding", "dambreak", "bleeding_methods", "scenes")  # dambreak includes the SPlisHSPlasH peer where it installs
+SECTIONS = ("heat", "heat_reference", "heat_layers", "damage", "bleeding", "dambreak", "bleeding_methods", "scenes", "activity")  # dambreak includes the SPlisHSPlasH peer where it installs
 
 
 def run(out_dir, quick: bool = False, arch: str = "auto", sections=SECTIONS) -> dict:

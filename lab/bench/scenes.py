@@ -27,7 +27,7 @@ def scene_cost(path, seconds: float, server) -> dict:
     scene = Scene.from_file(path)
     stream = TextureStream(server, scene.surface, name=f"/bench/{path.stem}", hide_after_s=0.0)
     scene.step()  # compile the step kernels, then the display ones
-    stream.update(scene.composite(), *scene.material_maps())
+    stream.update(scene.composite(), *scene.material_maps(), changed=scene.take_display_changes())
     scene.reset()
     scene.profile = True
     steps = max(1, int(round(seconds / scene.time_step_s)))
@@ -39,7 +39,7 @@ def scene_cost(path, seconds: float, server) -> dict:
             rgb = scene.composite()
             maps = scene.material_maps()
             start = time.perf_counter()
-            sent_bytes += stream.update(rgb, *maps)["bytes"]
+            sent_bytes += stream.update(rgb, *maps, changed=scene.take_display_changes())["bytes"]
             encoding += time.perf_counter() - start
             updates += 1
     stream.close()

@@ -12,6 +12,7 @@ it) ticks the session and redraws what changed.
 """
 from __future__ import annotations
 
+import functools
 import math
 import sys
 import threading
@@ -32,6 +33,7 @@ from sims.instruments import local_frame
 from sims.scene import Refused, finite_vector
 
 FRAME_INTERVAL_S = 1.0 / 30.0       # texture updates at most this often
+MAX_WAIT_S = 0.02                   # the simulation thread looks at the session at least this often
 STATS_INTERVAL_S = 0.5
 PLOT_SECONDS = 60.0
 REBUILD_HINT = "Changing it restarts the scene (rebuilt with the new value)."
@@ -68,7 +70,14 @@ def instrument_mesh(shape: dict) -> trimesh.Trimesh:
 
 
 def pose_wxyz(direction, roll_deg: float) -> np.ndarray:
-    return vtf.SO3.from_matrix(local_frame(direction, roll_deg).T).wxyz
+    """Quaternion (w, x, y, z) of a tool pointing along direction, rolled roll_deg about it."""
+    return np.array(_wxyz(tuple(float(v) for v in direction), float(roll_deg)))
+
+
+@functools.lru_cache(maxsize=64)
+def _wxyz(direction: tuple, roll_deg: float) -> tuple:
+    """pose_wxyz by value: the view asks for every tool's every frame, and tools seldom turn."""
+    return tuple(vtf.SO3.from_matrix(local_frame(np.array(direction), roll_deg).T).wxyz)
 
 
 def placement_from_transform(wxyz, position) -> tuple[np.ndarray, np.ndarray, float]:
@@ -545,9 +554,12 @@ class LabApp:
             steps += taken
             if self.session.builds != self.shown_builds:
                 self._show_scene()
-            if not taken:
-                time.sleep(0.002)
             now = time.perf_counter()
+            if not taken:  # wait for the next step or frame, whichever is due first (at most MAX_WAIT_S)
+                wait = min(self.session.seconds_to_next_step(), last_frame + FRAME_INTERVAL_S - now, MAX_WAIT_S)
+                if wait > 0.0:
+                    time.sleep(wait)
+                    now = time.perf_counter()
             if now - last_frame >= FRAME_INTERVAL_S:
                 self._sync_view()
                 if self.session.broken is None:  # a non-finite field is named in the stats, not drawn

@@ -331,6 +331,16 @@ class LabSession:
                     break
         return steps
 
+    def seconds_to_next_step(self) -> float:
+        """Wall seconds until tick() has a step to take (0: one is due now), as far as the clock decides; a queued
+        command can change that at any time, so a front end waits at most about a frame."""
+        if self._anchor is None or self.single_steps or not self._commands.empty():
+            return 0.0
+        if not self.running or self.waiting_for_viewer or self.broken:
+            return float("inf")
+        due = self._anchor[0] + (self.scene.time_s - self._anchor[1]) / self.speed
+        return max(0.0, due - time.perf_counter())
+
     def _check_finite(self) -> bool:
         bad = self.scene.non_finite_field()
         if bad is not None:

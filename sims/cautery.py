@@ -222,6 +222,8 @@ class Cautery:
             self.interleaved = ti.lang.impl.current_cfg().arch not in (ti.x64, ti.arm64)  # GPU: adjacent threads, adjacent texels
         self._column_key = None  # parameters the column tables were made for
         self._tools_were_near = False  # tile_near may hold ones
+        self.version = 0  # counts the steps and settings that changed the fields (metrics() reads them again)
+        self._metrics = (-1, {})
         self._wake_everything()
         self.reset()
 
@@ -335,6 +337,7 @@ class Cautery:
         """The next step steps every tile at full depth, and every tile counts as changed for the look."""
         self._wake_all = True
         self.tiles.mark_all_changed()
+        self.version += 1
 
     def take_changed_tiles(self, temperature: bool) -> np.ndarray:
         """(T,) bool over self.tiles: the tiles whose fields changed since the last call (one reader: the look); with
@@ -426,6 +429,7 @@ class Cautery:
         self.last_iterations = count
         if awake == 0:
             return
+        self.version += 1
         body = t["body_temperature_c"]
         surface = (reach, c["contact_conductance_w_m2k"], c["surface_loss_w_m2k"], c["air_temperature_c"], c["sleep_tolerance_c"])
         column = (body, sub * self.perfusion_rate_1_s, self.half_layer_conductance_w_m2k,
@@ -807,15 +811,16 @@ class Cautery:
 
     # --- outputs ------------------------------------------------------------------------------
     def metrics(self) -> dict:
-        mask, area = self.surface.mask, self.surface.texel_area_mm2.astype(np.float64)
-        depth = self.coagulation_depth_mm().astype(np.float64)
-        return {
-            "max_temperature_c": float(self.temperature_c()[mask].max()),
-            "coagulated_area_mm2": float(area[self.damage_omega() >= 1.0].sum()),
-            "charred_area_mm2": float(area[self.char_level() >= CHARRED_LEVEL].sum()),
-            "coagulation_depth_mm": float(depth[mask].max()),
-            "coagulated_volume_mm3": float((area * depth)[mask].sum()),
-            "layers": self.layer_count,
-            "top_layer_mm": self.top_layer_mm,
-            "awake_tiles": self.awake_fraction(),
-        }
+        """metrics.json `cautery`; the fields are read again only when a step changed them (version)."""
+        if self._metrics[0] != self.version:
+            mask, area = self.surface.mask, self.surface.texel_area_mm2.astype(np.float64)
+            depth = self.coagulation_depth_mm().astype(np.float64)
+            self._metrics = (self.version, {
+                "max_temperature_c": float(self.temperature_c()[mask].max()),
+                "coagulated_area_mm2": float(area[self.damage_omega() >= 1.0].sum()),
+                "charred_area_mm2": float(area[self.char_level() >= CHARRED_LEVEL].sum()),
+                "coagulation_depth_mm": float(depth[mask].max()),
+                "coagulated_volume_mm3": float((area * depth)[mask].sum()),
+            })
+        return {**self._metrics[1], "layers": self.layer_count, "top_layer_mm": self.top_layer_mm,
+                "awake_tiles": self.awake_fraction()}

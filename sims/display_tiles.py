@@ -80,13 +80,13 @@ class DisplayTiles:
         if self._fresh:
             self._fresh = False
             return self.select_all()
-        none = np.zeros(self.tiles, bool)
-        tissue = none if changed_heat is None or self.heat_reads is None else \
-            (self.heat_reads.T @ np.ravel(changed_heat).astype(np.int32)) > 0
-        blood = none if changed_film is None or self.film_reads is None else \
-            (self.film_reads.T @ np.ravel(changed_film).astype(np.int32)) > 0
-        if not (tissue.any() or blood.any()):
+        heat_changed = changed_heat is not None and self.heat_reads is not None and np.any(changed_heat)
+        film_changed = changed_film is not None and self.film_reads is not None and np.any(changed_film)
+        if not (heat_changed or film_changed):  # an idle scene: nothing to work out
             return self._set(np.zeros(self.tiles, np.int32))
+        none = np.zeros(self.tiles, bool)
+        tissue = (self.heat_reads.T @ np.ravel(changed_heat).astype(np.int32)) > 0 if heat_changed else none
+        blood = (self.film_reads.T @ np.ravel(changed_film).astype(np.int32)) > 0 if film_changed else none
         rows = _grow(blood.reshape(self.grid), 0, self.blood_reach)  # the pass along rows reads left and right
         columns = _grow(rows, self.blood_reach, 0)                   # the pass along columns up and down
         write = tissue.reshape(self.grid) | columns

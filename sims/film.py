@@ -131,26 +131,35 @@ class BloodFilm(GridReader):
         self.stain.fill(0.0)
         self.near.fill(0)
         self.touched.fill(1)
+        self._settled = False
 
     def advance(self, dt_s: float, trail_s: float) -> None:
-        """After a step of dt_s: take the method's film and keep the trail and the stain."""
+        """After a step of dt_s: take the method's film and keep the trail and the stain. Nothing to do (no kernel)
+        while the film is settled (take_touched) and the method's step moved no blood."""
+        if self._settled and not self.bleeding.moved:
+            return
         self.bleeding.fresh_film(self.fresh)
         self._keep(math.exp(-dt_s / trail_s) if trail_s > 0 else 0.0)
 
     @ti.kernel
     def _keep(self, decay: ti.f32):
         for r, c in self.fresh:
-            fresh, trail = self.fresh[r, c], self.trail[r, c]
+            fresh, trail, stain = self.fresh[r, c], self.trail[r, c], self.stain[r, c]
             if fresh > 0.0 or trail > 0.0:
                 kept = decay * trail
-                self.trail[r, c] = ti.max(fresh, ti.select(kept >= TRAIL_FLOOR_MM, kept, 0.0))
-                self.stain[r, c] = ti.max(self.stain[r, c], fresh)
-                self.touched[r // self.tile, c // self.tile] = 1
+                new_trail = ti.max(fresh, ti.select(kept >= TRAIL_FLOOR_MM, kept, 0.0))
+                new_stain = ti.max(stain, fresh)
+                if new_trail != trail or new_stain != stain:
+                    self.trail[r, c], self.stain[r, c] = new_trail, new_stain
+                    self.touched[r // self.tile, c // self.tile] = 1
 
     def take_touched(self) -> np.ndarray:
         """(tile rows, tile columns) bool: the film tiles whose trail or stain may have changed since the last call,
-        with their neighbours (whose near flags may have changed); near is brought up to date on them."""
+        with their neighbours (whose near flags may have changed); near is brought up to date on them. When none was touched
+        and the method's last step moved no blood, every trail equals the film or is 0: the film is settled, and
+        advance() does nothing until the method moves blood again."""
         touched = self.touched.to_numpy().astype(bool)
+        self._settled = not touched.any() and not self.bleeding.moved  # nothing decays and nothing comes: steady
         if touched.any():
             padded = np.pad(touched, 1)
             touched = np.any([padded[1 + dr:1 + dr + touched.shape[0], 1 + dc:1 + dc + touched.shape[1]]

@@ -375,6 +375,11 @@ class HeightFieldBleeding:
             self.totals["dried"] += int(counts[DRIED])
         self.step_index += 1
 
+    @property
+    def moved(self) -> bool:
+        """Whether the last step changed the blood (sims.models.BleedingMethod.moved)."""
+        return self.last_substeps > 0
+
     @ti.func
     def _depth(self, r, c):
         return self.volume[r, c] * self.unit_per_area[r, c]

@@ -92,20 +92,24 @@ class Instrument:
         """Back to the script: the path's placement and switching from now on."""
         self.hand, self.energized_by_hand = None, None
 
-    def scripted_pose_at(self, t_s: float) -> Pose:
-        """The path's pose at time t: keyframe values interpolated linearly (energized holds its last value)."""
+    def scripted_pose_at(self, t_s: float, placement: bool = True) -> Pose:
+        """The path's pose at time t: keyframe values interpolated linearly (energized holds its last value);
+        placement False: the base position, direction and roll (a hand places the tool: not worth interpolating)."""
         base = self.base
+        position, direction, roll = base.position_mm, base.direction, base.roll_deg
+        if placement:
+            position = paths.interpolate(self.path, "position_mm", t_s, position)
+            direction = paths.interpolate(self.path, "direction", t_s, direction)
+            roll = paths.interpolate(self.path, "roll_deg", t_s, roll)
         return Pose(
-            np.asarray(paths.interpolate(self.path, "position_mm", t_s, base.position_mm), np.float64),
-            np.asarray(paths.interpolate(self.path, "direction", t_s, base.direction), np.float64),
-            float(paths.interpolate(self.path, "roll_deg", t_s, base.roll_deg)),
+            np.asarray(position, np.float64), np.asarray(direction, np.float64), float(roll),
             bool(paths.hold(self.path, "energized", t_s, base.energized)),
             float(paths.interpolate(self.path, "tip_temperature_c", t_s, base.tip_temperature_c)),
         )
 
     def pose_at(self, t_s: float) -> Pose:
         """Pose at time t: the script's, with the hand's placement and switch where a hand set them."""
-        pose = self.scripted_pose_at(t_s)
+        pose = self.scripted_pose_at(t_s, placement=self.hand is None)
         if self.hand is not None:
             pose.position_mm, pose.direction, pose.roll_deg = self.hand.position_mm, self.hand.direction, self.hand.roll_deg
         if self.energized_by_hand is not None:

@@ -21,6 +21,7 @@ class BleedingMethod(Protocol):
     film_shape: tuple  # the grid of its film (sims.film): its own grid, or the display's
     film_display: object  # sims.resample.GridResampler from that grid onto the display, or None (the same grid)
     film_clot: object  # Taichi field on that grid: clot fraction 0-1, or None
+    moved: bool  # whether the last step() (or a reset) changed the blood: False while it is dry or all asleep
 
     def reset(self) -> None: ...
     def set_gravity(self, gravity_mm_s2) -> None: ...

@@ -147,6 +147,7 @@ class Scene:
         except MeshError as exc:
             raise ConfigError(self.file, "mesh", f"{config['mesh']}: {exc}") from None
         self.models = list(config["models"])
+        self._unchecked = set(self.models)  # models that stepped since non_finite_field() last read them
         self.time_s, self.steps = 0.0, 0
         self._time_base = (0.0, 0, config["time_step_s"])  # time_s = t0 + (steps - n0) * dt while dt stays dt
         self.profile = False      # True: sync the device around each model and add its wall seconds to model_seconds
@@ -160,6 +161,8 @@ class Scene:
         self.bleed_points = []
         self._active_tool = None      # (name, position mm, last move mm) of the heating tool last seen energized
         self._section_sampler = None  # sims.section.SectionSampler, made on the first burn_section()
+        self._triangles_mm = None     # (F, 3, 3) the mesh's triangles, for rays (tissue_distance_mm)
+        self._clearances = {}         # (tool, position, direction, tip offset) -> tool_clearance_mm
         self._parameters = None  # (tool and point names, parameter table) made by parameters()
         if "cautery" in self.models:
             from sims.cautery import Cautery
@@ -220,9 +223,13 @@ class Scene:
                 self.instrument_fields.set_time(self.time_s)
                 self._note_active_tool()
                 self.cautery.step(dt)
+            if self.cautery.tiles.awake or self.cautery.scheme == "implicit":
+                self._unchecked.add("cautery")
         if self.bleeding is not None:
             with self._timed("bleeding"):
                 self._bleed(dt)
+            if self.bleeding.moved:
+                self._unchecked.add("bleeding")
             with self._timed("compose"):
                 self.film.advance(dt, self.config["look"]["blood_trail_s"])
         self.steps += 1
@@ -430,7 +437,9 @@ class Scene:
         from sims.raycast import first_hit
 
         direction = np.asarray(direction, np.float64)
-        return first_hit(position_mm, direction / np.linalg.norm(direction), self.surface.vertices_mm[self.surface.faces])
+        if self._triangles_mm is None:
+            self._triangles_mm = self.surface.vertices_mm[self.surface.faces]
+        return first_hit(position_mm, direction / np.linalg.norm(direction), self._triangles_mm)
 
     def tool_clearance_mm(self, name: str) -> float | None:
         """Gap between the tool's tip and the tissue along the tool's axis, mm (negative: pressed in), or None when
@@ -438,10 +447,15 @@ class Scene:
         tool = self.instrument(name)
         pose = tool.pose_at(self.time_s)
         offset = tool.tip_offset_mm()
-        behind_mm = 5.0  # the ray starts this far behind the tip: a tip pressed in still finds the surface
-        start = pose.position_mm + pose.direction * (offset - behind_mm)
-        distance = self.tissue_distance_mm(start, pose.direction)
-        return None if distance is None else distance - behind_mm
+        key = (name, tuple(pose.position_mm), tuple(pose.direction), offset)
+        if key not in self._clearances:  # the stats ask twice a second; a tool at rest needs no new ray
+            behind_mm = 5.0  # the ray starts this far behind the tip: a tip pressed in still finds the surface
+            start = pose.position_mm + pose.direction * (offset - behind_mm)
+            distance = self.tissue_distance_mm(start, pose.direction)
+            if len(self._clearances) > 64:
+                self._clearances.clear()
+            self._clearances[key] = None if distance is None else distance - behind_mm
+        return self._clearances[key]
 
     def rest_on_tissue(self, name: str, position_mm, depth_mm: float, direction=None) -> float | None:
         """Place the tool by hand so that its tip is depth_mm into the tissue below position_mm along its axis (the
@@ -561,6 +575,7 @@ class Scene:
         self.release()
         self.time_s, self.steps = 0.0, 0
         self._time_base = (0.0, 0, self.time_step_s)
+        self._unchecked = set(self.models)
         if self.cautery is not None:
             self.cautery.reset()
             self._active_tool = None
@@ -599,9 +614,17 @@ class Scene:
 
     def non_finite_field(self) -> str | None:
         """Name of the first simulated field holding NaN or inf, or None (read on the models' own grids: a resampled
-        value is finite when the values it is read from are)."""
-        for name, values in self.state_arrays(display_grid=False).items():
+        value is finite when the values it is read from are). Only the models that stepped anything since the last
+        call are read: the others' fields are as they were."""
+        arrays = {}
+        if self.cautery is not None and "cautery" in self._unchecked:
+            arrays.update(self.heat_display.arrays(False))
+        if self.bleeding is not None and "bleeding" in self._unchecked:
+            arrays.update(self.bleeding.state_arrays(False))
+        self._unchecked = set()
+        for name, values in arrays.items():
             if values.dtype.kind == "f" and not np.isfinite(values).all():
+                self._unchecked = set(self.models)  # still broken: the next call looks again
                 return name
         return None
 

@@ -142,6 +142,7 @@ class Bleeding:
     def reset(self) -> None:
         """Empty the pool and zero the counters."""
         self.count, self.step_index = 0, 0
+        self.moved = True  # whether the last step had particles to move (sims.models.BleedingMethod.moved)
         self.counters.fill(0)
         self._spawn_budget, self._suction_budget = {}, 0.0
         self.pool_full_reported = False   # the pool was full when blood should have spawned
@@ -242,6 +243,7 @@ class Bleeding:
         """Advance dt_s. suction: [(position_mm (3,), radius_mm, rate_ml_s)] of the tools switched on."""
         p = self.params
         self.cell_size[None] = self._cell_size_for(p["interaction_radius_mm"])
+        self.moved = self.count > 0
         if self.count:
             substeps = p["substeps"]
             sub = dt_s / substeps

@@ -93,6 +93,7 @@ class TileSchedule:
             self.partner.from_numpy(partner)
         self.awake = 0        # tiles awake this step (copies of count, read once per plan)
         self.fell_asleep = 0  # tiles in `asleep`
+        self._flagged = True  # changed or damaged may hold a flag (a tile stepped or was set since take_changed)
         self.hot.fill(-1)
 
     @ti.func
@@ -112,6 +113,7 @@ class TileSchedule:
         full depth. Returns how many are awake."""
         counts = self._plan(int(reach_tiles), int(margin), int(wake_all))  # a returned value: no separate read back
         self.awake, self.fell_asleep = int(counts[0]), int(counts[1])
+        self._flagged = self._flagged or self.awake > 0
         return self.awake
 
     @ti.kernel
@@ -152,13 +154,17 @@ class TileSchedule:
         """Every tile's values were set from outside (a reset, a new state)."""
         self.changed.fill(1)
         self.damaged.fill(1)
+        self._flagged = True
 
     def take_changed(self, stepped: bool) -> np.ndarray:
         """(T,) bool: the tiles stepped (stepped=True) or only those damaged, since the last call or a reset (what a
-        reader of the fields must refresh); both sets start again empty."""
+        reader of the fields must refresh); both sets start again empty. No tile stepped since: no device access."""
+        if not self._flagged:
+            return np.zeros(self.tiles, bool)
         changed = (self.changed if stepped else self.damaged).to_numpy().astype(bool)
         self.changed.fill(0)
         self.damaged.fill(0)
+        self._flagged = False
         return changed
 
     def awake_fraction(self) -> float:

@@ -185,13 +185,14 @@ class Composer:
         out = [np.empty((len(written), t, t) + tail, np.uint8) for tail in ((3,), (3,), ())]
         self._pack(tiles.tile, tiles.cols, written, *out)
         height, width = self.fill.shape
+        rows, cols = written // tiles.cols, written % tiles.cols
         shown = []
         for old, packed in zip(self.shown, out):
-            padded = np.zeros((tiles.rows * t, tiles.cols * t) + old.shape[2:], np.uint8)
-            padded[:height, :width] = old
-            view = padded.reshape(tiles.rows, t, tiles.cols, t, *old.shape[2:]).swapaxes(1, 2)
-            view[written // tiles.cols, written % tiles.cols] = packed
-            new = np.ascontiguousarray(padded[:height, :width])
+            whole = (tiles.rows * t, tiles.cols * t) == (height, width)
+            new = old.copy() if whole else np.pad(old, [(0, tiles.rows * t - height), (0, tiles.cols * t - width)] + [(0, 0)] * (old.ndim - 2))
+            new.reshape(tiles.rows, t, tiles.cols, t, *old.shape[2:]).swapaxes(1, 2)[rows, cols] = packed
+            if not whole:
+                new = np.ascontiguousarray(new[:height, :width])
             new.flags.writeable = False
             shown.append(new)
         self.shown = tuple(shown)

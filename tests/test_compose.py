@@ -62,16 +62,24 @@ def test_an_idle_scene_recomposes_nothing():
                                                 ("hemostasis.yaml", "height_field")])
 def test_recomposing_where_the_blood_changed_shows_what_a_full_pass_shows(scene_file, method):
     """Blood spreads, is sucked away, clots and leaves stains; the look recomposes only the tiles the film's touched
-    tiles reach (sims.film, sims.display_tiles), and every map equals a pass over every tile."""
+    tiles reach (sims.film, sims.display_tiles), every map equals a pass over every tile, and every texel that changed
+    between two composites lies in a tile Scene.take_display_changes() names."""
     from sims.scene import Scene
 
     scene = Scene.from_file(REPO_ROOT / "scenes" / scene_file, ["texture_size=256", f"bleeding.method={method}"])
-    written = []
+    written, before = [], shown_maps(scene)
+    scene.take_display_changes()
     for _ in range(10):
         for _ in range(30):
             scene.step()
         shown = shown_maps(scene)
         written.append(scene.display_tiles.listed)
+        tile, flags = scene.take_display_changes()  # what a texture stream compares: every changed texel is in it
+        for old, new in zip(before, shown):
+            differs = (old != new).reshape(old.shape[0], old.shape[1], -1).any(axis=-1)
+            assert not (differs & ~np.kron(flags, np.ones((tile, tile), bool))[:differs.shape[0], :differs.shape[1]]).any()
+        before = shown
         for name, partial, full in zip(("colour", "normal", "roughness"), shown, full_pass(scene)):
             assert np.array_equal(partial, full), f"{name} at t = {scene.time_s:.2f} s"
+        scene.take_display_changes()  # the full pass wrote every tile (the same bytes): not a change to check
     assert 0 < max(written) and min(written) < scene.display_tiles.tiles  # partial passes, and blood was recomposed

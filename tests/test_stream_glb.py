@@ -291,6 +291,34 @@ def test_stream_rate_limit_defers_changed_tiles_and_sends_their_newest_crop(serv
     stream.close()
 
 
+def test_stream_compares_only_the_blocks_its_maker_flags_and_keeps_deferred_tiles(server):
+    """update(changed=(tile, flags)): texels outside the flagged blocks are taken as unchanged (the scene knows what it
+    recomposed), so a change there is not looked at; a flagged tile the rate limit defers is still sent later, when
+    nothing is flagged any more."""
+    from lab.stream import TextureStream
+
+    Recorder(server)
+    stream = TextureStream(server, bumpy_patch(), tiles=4, max_tiles_per_s=2.0, settle_s=0.0)
+    image = np.full((64, 64, 3), 120, np.uint8)
+    stream.update(image)
+    applied(server, stream)
+    nothing = np.zeros((4, 4), bool)
+    image[40:44, 10:14] = 255
+    assert stream.update(image, changed=(16, nothing))["tiles_sent"] == 0  # not flagged: not compared
+    flags = nothing.copy()
+    flags[2, 0] = True  # the 16 x 16 block holding rows 40-43, columns 10-13
+    image[2:6, 2:6] = 0   # and a change in another tile, flagged too
+    flags[0, 0] = True
+    time.sleep(0.6)  # one token
+    first = stream.update(image, changed=(16, flags))
+    assert first["tiles_sent"] == 1 and first["tiles_deferred"] == 1
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline and not stream.update(image, changed=(16, nothing))["tiles_sent"]:
+        time.sleep(0.1)  # the deferred tile goes with the next token although nothing is flagged now
+    assert stream.update(image)["tiles_sent"] == 0, "every change was sent: a full comparison finds nothing left"
+    stream.close()
+
+
 def test_stream_sends_the_largest_change_first_and_lets_faint_changes_settle(server):
     """With one tile's budget: a fresh burn goes before a tile that changed less; a one-level change (tissue cooling)
     waits settle_s and then goes too."""

@@ -42,8 +42,9 @@ re-published when any of its crops changed, ranked by the largest change over th
 published tile only the maps whose crop changed are encoded again. The normal map goes at the
 colour's resolution, the roughness at half of it (normal_divisor=1, roughness_divisor=2; half: 2 x 2
 texel means over a crop box aligned to even texels, so neighbouring tiles average the same texels and
-meet without a step), both as PNG at zlib level 6 (14 % smaller than level 1 for 1-2 ms more per
-tile). Measured on the default scene (liver patch, 512^2, 8 x 8 tiles) with the look's maps
+meet without a step), both as PNG at zlib level 3, the fastest level's best packing (level 6 was 3 %
+smaller on the hemostasis scene's bleeding but took 1.6 times as long to encode: 67 against 42 ms per
+update of 30 tiles). Measured on the default scene (liver patch, 512^2, 8 x 8 tiles) with the look's maps
 (sims.scene.Scene.material_maps) in software WebGL at the lab's view and in a close-up: the
 roughness at half resolution changed the picture by 0.3-0.5 levels on average (99th percentile 3),
 not visibly; the normal map at half resolution visibly softened the tissue's fine wrinkles (0.9-1.8
@@ -709,7 +710,7 @@ class TextureStream:
     def _encode(self, kind: str, crop: np.ndarray) -> tuple[bytes, str]:
         """One map's crop as an image: the colour as image_format; the normal map (RGB) and the roughness (greyscale:
         R = G = B, so glTF's G is the roughness and B, the metalness, is cancelled by metallicFactor 0) as PNG at zlib
-        level 6 (the colour PNG at level 1, as before), at 1 / its divisor of the colour's resolution (2 x 2 texel
+        level 3 (the colour PNG at level 1, as before), at 1 / its divisor of the colour's resolution (2 x 2 texel
         means: the crop box is aligned to even texels)."""
         buffer = io.BytesIO()
         if self.divisors[kind] == 2:
@@ -720,7 +721,7 @@ class TextureStream:
         if kind == "color" and self.image_format == "jpeg":
             image.save(buffer, format="JPEG", quality=90, subsampling=0)
             return buffer.getvalue(), "image/jpeg"
-        image.save(buffer, format="PNG", compress_level=1 if kind == "color" else 6)
+        image.save(buffer, format="PNG", compress_level=1 if kind == "color" else 3)
         return buffer.getvalue(), "image/png"
 
     def _refill(self, now: float) -> None:

@@ -1,6 +1,6 @@
 """Cost against activity: what a lab pays per simulated second when nothing happens, when one or two tools burn and
-when one or four vessels bleed, at several texture sizes, per stage; and what an idle lab process costs with its
-browser server running."""
+when one or four vessels bleed, at several texture sizes, per stage; and what an idle `python -m lab serve` costs
+(Linux: it reads /proc)."""
 import socket
 import time
 
@@ -78,35 +78,41 @@ def case_cost(size: int, case: str, seconds: float, server) -> dict:
             "hot_tiles_awake": int(scene.cautery.tiles.awake), "blood_ml": float(scene.metrics()["bleeding"].get("volume_ml", 0.0))}
 
 
-def idle_lab_process(seconds: float) -> dict:
-    """CPU share of one core the whole lab process takes (simulation thread, viser server, its GUI) on the default scene
-    at 512² with every tool parked and off and no browser connected, over `seconds` of wall time."""
-    import threading
+def idle_lab_process(seconds: float, settle_s: float = 20.0) -> dict:
+    """Share of one core that `python -m lab serve` takes, as a process of its own with no browser, on the default
+    scene at 512² without its tools (nothing burns or bleeds): CPU seconds (user + system, every thread: simulation,
+    viser server, GUI) over `seconds` of wall time, once it serves and settle_s have passed (the build compiles)."""
+    import os
+    import subprocess
+    import sys
+    import urllib.request
 
-    from lab.app import LabApp
+    def cpu_s(pid: int) -> float:
+        fields = open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
-    app = LabApp(REPO_ROOT / "scenes" / "default.yaml", "127.0.0.1", _free_port(), "auto")
+    port = _free_port()
+    command = [sys.executable, "-m", "lab", "serve", str(REPO_ROOT / "scenes" / "default.yaml"), "--port", str(port),
+               "--set", "instruments=[]"]
+    lab = subprocess.Popen(command, cwd=REPO_ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
-        for index, tool in enumerate(app.scene.instruments):
-            app.session.take_over(tool.name, [5.0 * index, 0.0, PARKED_Z_MM])
-            app.session.set_energized(tool.name, False)
-        result = {}
-
-        def measure():
-            time.sleep(2.0)  # the first steps wake every tile once
-            cpu, wall = time.process_time(), time.perf_counter()
-            time.sleep(seconds)
-            result["cpu_share"] = (time.process_time() - cpu) / (time.perf_counter() - wall)
-            result["simulated_s"] = app.scene.time_s
-            app.stop_event.set()
-
-        watcher = threading.Thread(target=measure, daemon=True)
-        watcher.start()
-        app.run()
-        watcher.join()
+        deadline = time.monotonic() + 300.0
+        while time.monotonic() < deadline:
+            try:
+                urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=1.0)
+                break
+            except OSError:
+                if lab.poll() is not None:
+                    raise RuntimeError(f"the lab exited with code {lab.returncode}") from None
+                time.sleep(0.5)
+        time.sleep(settle_s)
+        cpu, wall = cpu_s(lab.pid), time.perf_counter()
+        time.sleep(seconds)
+        share = (cpu_s(lab.pid) - cpu) / (time.perf_counter() - wall)
     finally:
-        app.close()
-    return {"seconds": seconds, **result}
+        lab.terminate()
+        lab.wait(timeout=30)
+    return {"seconds": seconds, "cpu_share": share}
 
 
 def run(quick: bool) -> dict:
@@ -119,7 +125,7 @@ def run(quick: bool) -> dict:
         rows = [case_cost(size, case, seconds, server) for size in sizes for case in CASES]
     finally:
         server.stop()
-    return {"rows": rows, "idle_lab": idle_lab_process(1.0 if quick else 10.0)}
+    return {"rows": rows, "idle_lab": idle_lab_process(2.0 if quick else 10.0, 5.0 if quick else 20.0)}
 
 
 def render(results: dict) -> list[str]:
@@ -141,9 +147,9 @@ def render(results: dict) -> list[str]:
         costs = " | ".join(f"{row['ms_per_simulated_s'][stage]:.1f}" for stage in STAGES)
         lines.append(f"| {row['texture_size']}² | {row['case']} | {costs} | {row['total_ms_per_simulated_s']:.1f} | "
                      f"{row['total_ms_per_simulated_s'] / 10:.1f} | {row['kb_per_update']:.1f} |")
-    lines += ["", f"The whole idle lab process (`python -m lab serve` on default.yaml at 512², every tool parked and off, no "
-              f"browser; simulation thread, viser server and GUI) took {100 * lab['cpu_share']:.1f} % of one core over "
-              f"{lab['seconds']:g} s of wall time."]
+    lines += ["", f"An idle lab (`python -m lab serve scenes/default.yaml --set instruments=[]`, 512², a process of its own "
+              f"with no browser: simulation thread, viser server and GUI) took {100 * lab['cpu_share']:.1f} % of one "
+              f"core over {lab['seconds']:g} s of wall time."]
     return lines
 
 

@@ -31,6 +31,7 @@ import math
 
 import numpy as np
 import taichi as ti
+from taichi.lang.util import to_numpy_type
 
 from sims.film import ParticleSplat
 from sims.hashing import hash01
@@ -574,6 +575,16 @@ class Bleeding:
                 self.counters[fate] += 1
 
     # --- outputs ------------------------------------------------------------------------------
+    def memory_bytes(self) -> dict:
+        """Bytes held in Taichi fields: 'particles' (sized by the capacity) and 'grid' (texel maps, cells, splat)."""
+        fields = [value for value in [*vars(self).values(), *vars(self.splatter).values()] if isinstance(value, ti.Field)]
+        sizes = {"particles": 0, "grid": 0}
+        for field in fields:
+            lanes = getattr(field, "n", 1) * getattr(field, "m", 1)
+            size = int(np.prod(field.shape)) * lanes * np.dtype(to_numpy_type(field.dtype)).itemsize
+            sizes["particles" if self.capacity in field.shape else "grid"] += size
+        return sizes
+
     def accounting(self) -> dict:
         counters = self.counters.to_numpy()
         result = {key: int(counters[index]) for index, key in enumerate(KEYS)}

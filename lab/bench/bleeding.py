@@ -1,5 +1,6 @@
 """Bleeding: throughput against the NumPy + cKDTree step, and density error against substeps and time step."""
 import math
+import time
 
 import numpy as np
 
@@ -13,10 +14,10 @@ def _defaults() -> dict:
     return {name: spec.default for name, spec in params.BLEEDING.items()}
 
 
-def throughput(count: int, steps: int, numpy_steps: int) -> dict:
-    """Particle-steps per second of sims.sph and of the NumPy + cKDTree step on the same particles: a disk at rest
-    spacing on a flat plane, no gravity, default parameters, dt 0.01 s."""
-    from lab.sph_reference import NumpyBleeding, disk_positions
+def disk(count: int):
+    """(sims.sph.Bleeding holding `count` particles at rest spacing in a disk on a flat plane, no gravity, default
+    parameters, stepped once to compile; the disk's positions in mm)."""
+    from lab.sph_reference import disk_positions
     from sims.sph import Bleeding
 
     values = _defaults()
@@ -28,14 +29,58 @@ def throughput(count: int, steps: int, numpy_steps: int) -> dict:
     grid[:, 1] = size - grid[:, 1]  # rows grow toward -y
     bleeding.place(grid)
     bleeding.step(0.01)  # compile
+    return bleeding, positions
+
+
+def throughput(count: int, steps: int, numpy_steps: int) -> dict:
+    """Particle-steps per second of sims.sph and of the NumPy + cKDTree step on the same particles (disk()), dt 0.01 s."""
+    from lab.sph_reference import NumpyBleeding
+
+    bleeding, positions = disk(count)
     taichi_rate = count * steps / synced_seconds(lambda: bleeding.step(0.01), steps)
-    row = {"particles": count, "texture_size": size, "taichi_particle_steps_per_s": taichi_rate, "taichi_steps_per_s": taichi_rate / count}
+    row = {"particles": count, "texture_size": bleeding.width, "taichi_particle_steps_per_s": taichi_rate,
+           "taichi_steps_per_s": taichi_rate / count, "particle_fields_mb": bleeding.memory_bytes()["particles"] / 1e6}
     if numpy_steps:
+        values = _defaults()
         reference = NumpyBleeding(positions, values)
         reference.step(0.01)
         numpy_rate = count * numpy_steps / synced_seconds(lambda: reference.step(0.01), numpy_steps)
         row.update(numpy_particle_steps_per_s=numpy_rate, speedup=taichi_rate / numpy_rate)
     return row
+
+
+def profile(count: int, steps: int = 5) -> dict:
+    """ms per step spent in each Taichi kernel of sims.sph.Bleeding.step (device synchronised around every call, so
+    launches are serialised) and in the whole step, for disk(count); 'host' is the step less its kernels."""
+    import taichi as ti
+
+    bleeding, _ = disk(count)
+    spent = {}
+
+    def timed(name, kernel):
+        def call(*args):
+            ti.sync()
+            start = time.perf_counter()
+            kernel(*args)
+            ti.sync()
+            spent[name] = spent.get(name, 0.0) + time.perf_counter() - start
+        return call
+
+    for name, member in type(bleeding).__dict__.items():
+        if getattr(member, "_is_wrapped_kernel", False):
+            setattr(bleeding, name, timed(name, getattr(bleeding, name)))
+    best = {}
+    for _ in range(3):  # best of 3 runs of `steps` steps, per kernel
+        spent.clear()
+        ti.sync()
+        start = time.perf_counter()
+        for _ in range(steps):
+            bleeding.step(0.01)
+        ti.sync()
+        spent["step"] = time.perf_counter() - start
+        spent["host"] = spent["step"] - sum(value for key, value in spent.items() if key != "step")
+        best = {key: min(value, best.get(key, float("inf"))) for key, value in spent.items()}
+    return {"particles": count, "ms_per_step": {key: 1000.0 * value / steps for key, value in best.items()}}
 
 
 def settle(substeps: int, dt_s: float, seconds: float = 3.0) -> dict:

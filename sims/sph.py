@@ -44,7 +44,6 @@ ALIVE, SUCTIONED, LEFT_SURFACE, EXPIRED = 0, 1, 2, 3
 MAX_NEIGHBOURS = 48         # neighbours in range that one particle interacts with, at most (kept as bits)
 MAX_CANDIDATES = 256        # particles one particle examines, at most (bounds the cost of dense clumps)
 MASK_WORDS = MAX_CANDIDATES // 32
-IN_RANGE_MARGIN = 1.0 + 1e-6  # r^2 < h^2 this much over picks every pair that sqrt(r^2) < h keeps (float32)
 MAX_SUCTION_TOOLS = 8
 MAX_RELAX_FRACTION = 0.5    # largest relaxation displacement per substep, in interaction radii
 WALL_MARGIN = 1e-3          # walls keep particles this far (texels) inside the border of a valid texel
@@ -454,27 +453,31 @@ class Bleeding:
 
     @ti.kernel
     def _density_pass(self, n: ti.i32, h: ti.f32, rest: ti.f32, k: ti.f32, k_near: ti.f32):
-        """Density and near density; marks the first MAX_NEIGHBOURS candidates in range as i's neighbours."""
+        """Density and near density; marks the first MAX_NEIGHBOURS candidates in range as i's neighbours. Branch-free
+        over the candidates (a pair out of range adds exactly 0): in or out of range is a coin toss for the CPU."""
         for i in range(n):
             if i < self.alive_count[None]:
                 rho, rho_near = 0.0, 0.0
-                lo, hi, first = self._candidates(i)
+                lo, hi, _ = self._candidates(i)
                 for w in ti.static(range(MASK_WORDS)):
                     self.near[i, w] = ti.u32(0)
-                seen = 0
+                seen, c, bits = 0, 0, ti.u32(0)  # c: candidate number; bits: its word of the mask so far
                 for run in ti.static(range(3)):
                     for j in range(lo[run], hi[run]):
-                        if j != i and seen < MAX_NEIGHBOURS:
-                            _d, r2, _m = self._pair(i, j)
-                            if r2 < h * h * IN_RANGE_MARGIN:
-                                r = ti.sqrt(r2)
-                                if r < h:
-                                    q = 1.0 - r / h
-                                    rho += q * q
-                                    rho_near += q * q * q
-                                    c = first[run] + j - lo[run]
-                                    self.near[i, c >> 5] |= ti.u32(1) << ti.cast(c & 31, ti.u32)
-                                    seen += 1
+                        _d, r2, _m = self._pair(i, j)
+                        r = ti.sqrt(r2)
+                        hit = (j != i) & (seen < MAX_NEIGHBOURS) & (r < h)
+                        q = ti.select(hit, 1.0 - r / h, 0.0)
+                        rho += q * q
+                        rho_near += q * q * q
+                        bits |= ti.select(hit, ti.u32(1) << ti.cast(c & 31, ti.u32), ti.u32(0))
+                        seen += ti.cast(hit, ti.i32)
+                        if c & 31 == 31:
+                            self.near[i, c >> 5] = bits
+                            bits = ti.u32(0)
+                        c += 1
+                if c & 31:
+                    self.near[i, c >> 5] = bits
                 self.density[i] = ti.Vector([rho, rho_near])
                 self.pressure[i] = ti.Vector([k * (rho - rest), k_near * rho_near])
 
@@ -538,7 +541,8 @@ class Bleeding:
 
     @ti.kernel
     def _viscosity(self, n: ti.i32, dt: ti.f32, h: ti.f32, sigma: ti.f32, beta: ti.f32, max_speed: ti.f32):
-        """Viscosity impulses between approaching pairs, gathered: v_i -= I_ij / 2; then the speed clamp."""
+        """Viscosity impulses between approaching pairs, gathered: v_i -= I_ij / 2; then the speed clamp. Branch-free
+        over the neighbours (a pair that does not push subtracts exactly 0)."""
         for i in range(n):
             if i < self.alive_count[None]:
                 vi = self.vel[i]
@@ -549,15 +553,13 @@ class Bleeding:
                         bits = self.near[i, word]
                         while bits:
                             j, bits = self._next_neighbour(i, word, bits, lo, first)
-                            if self.fate[j] == ALIVE:
-                                d, r2, m = self._pair(i, j)
-                                r = ti.sqrt(r2)
-                                if 1e-6 * h < r < h:
-                                    dv = vi - self.vel[j]
-                                    u = (m[0] * dv[0] * d[0] + m[1] * (dv[0] * d[1] + dv[1] * d[0]) + m[2] * dv[1] * d[1]) / r
-                                    if u > 0.0:
-                                        impulse = dt * (1.0 - r / h) * (sigma * u + beta * u * u)
-                                        v -= 0.5 * ti.min(impulse, u) / r * d
+                            d, r2, m = self._pair(i, j)
+                            r = ti.sqrt(r2)
+                            dv = vi - self.vel[j]
+                            u = (m[0] * dv[0] * d[0] + m[1] * (dv[0] * d[1] + dv[1] * d[0]) + m[2] * dv[1] * d[1]) / r
+                            impulse = dt * (1.0 - r / h) * (sigma * u + beta * u * u)
+                            pushes = (self.fate[j] == ALIVE) & (1e-6 * h < r) & (r < h) & (u > 0.0)
+                            v -= ti.select(pushes, 0.5 * ti.min(impulse, u) / r, 0.0) * d
                 if self.fate[i] == ALIVE:
                     row, col, _ = self._texel(self.pos[i])
                     v, _ = self._clamp_speed(v, self.texel_metric[row, col], max_speed)

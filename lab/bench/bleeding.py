@@ -111,15 +111,16 @@ def settle(substeps: int, dt_s: float, seconds: float = 3.0) -> dict:
 
 
 def run(quick: bool) -> dict:
-    counts = (1_000, 10_000, 30_000) if quick else (1_000, 3_000, 10_000, 30_000, 100_000, 300_000)
+    counts = (1_000, 10_000, 30_000) if quick else (1_000, 3_000, 10_000, 30_000, 100_000, 300_000, 1_000_000)
     rows = []
     for count in counts:
-        numpy_steps = 0 if count > 100_000 else max(1, min(10, 30_000 // count))
+        numpy_steps = 0 if count > 300_000 else max(1, min(10, 30_000 // count))  # 1M: about 20 s a step, 1 GB
         rows.append(throughput(count, steps=max(3, min(40, 200_000 // count)) if not quick else max(3, min(10, 50_000 // count)), numpy_steps=numpy_steps))
+    profiles = [profile(count) for count in ((1_000,) if quick else (1_000, 100_000))]
     substeps = (1, 2, 4) if quick else (1, 2, 4, 8)
     time_steps = (0.01,) if quick else (0.005, 0.01, 0.02)
     density = [settle(n, dt, 1.0 if quick else 3.0) for dt in time_steps for n in substeps]
-    return {"throughput": rows, "density": density, "capacity_note": "the largest N is the largest pool measured"}
+    return {"throughput": rows, "profile": profiles, "density": density, "capacity_note": "the largest N is the largest pool measured"}
 
 
 def render(results: dict) -> list[str]:
@@ -129,13 +130,20 @@ def render(results: dict) -> list[str]:
         "Particles at rest spacing (0.5 mm) in a disk on a flat plane, no gravity, default parameters (2 substeps per",
         "0.01 s step). The NumPy + scipy cKDTree version of the same step (lab/sph_reference.py) runs in the same process.",
         "",
-        "| particles | Taichi steps/s | Taichi particle-steps/s | NumPy+cKDTree particle-steps/s | speed-up |",
-        "|---|---|---|---|---|",
+        "| particles | Taichi steps/s | Taichi particle-steps/s | NumPy+cKDTree particle-steps/s | speed-up | particle fields (MB) |",
+        "|---|---|---|---|---|---|",
     ]
     for row in results["throughput"]:
         numpy_rate = f"{row['numpy_particle_steps_per_s']:.3g}" if "numpy_particle_steps_per_s" in row else "not run"
         speedup = f"{row['speedup']:.1f}x" if "speedup" in row else "-"
-        lines.append(f"| {row['particles']:,} | {row['taichi_steps_per_s']:.1f} | {row['taichi_particle_steps_per_s']:.3g} | {numpy_rate} | {speedup} |")
+        lines.append(f"| {row['particles']:,} | {row['taichi_steps_per_s']:.1f} | {row['taichi_particle_steps_per_s']:.3g} | {numpy_rate} | {speedup} "
+                     f"| {row['particle_fields_mb']:.1f} |")
+    profiles = results.get("profile", [])
+    if profiles:
+        names = sorted(profiles[0]["ms_per_step"], key=lambda name: (name in ("step", "host"), name))
+        lines += ["", "ms per step in each kernel of the same step (device synchronised around every kernel; 'host': the rest):", "",
+                  "| particles | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]
+        lines += [f"| {row['particles']:,} | " + " | ".join(f"{row['ms_per_step'].get(name, 0.0):.3g}" for name in names) + " |" for row in profiles]
     lines += [
         "",
         "## Bleeding: density error against substeps and time step",

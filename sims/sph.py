@@ -487,7 +487,7 @@ class Bleeding:
         for i in range(n):
             if i < self.alive_count[None]:
                 shift = ti.Vector([0.0, 0.0])
-                lo, _, first = self._candidates(i)
+                lo, _hi, first = self._candidates(i)
                 for word in range(MASK_WORDS):
                     bits = self.near[i, word]
                     while bits:
@@ -548,7 +548,7 @@ class Bleeding:
                 vi = self.vel[i]
                 v = vi
                 if self.fate[i] == ALIVE and (sigma > 0.0 or beta > 0.0):
-                    lo, _, first = self._candidates(i)
+                    lo, _hi, first = self._candidates(i)
                     for word in range(MASK_WORDS):
                         bits = self.near[i, word]
                         while bits:

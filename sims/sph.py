@@ -445,10 +445,11 @@ class Bleeding:
         return ti.max(m[0] * v[0] * v[0] + 2.0 * m[1] * v[0] * v[1] + m[2] * v[1] * v[1], 0.0)
 
     @ti.func
-    def _pair(self, i, j):
-        """Grid offset d = x_j - x_i, squared physical distance r^2 (mm^2) through the pair's mean metric, the metric."""
-        d = self.pos[j] - self.pos[i]
-        m = 0.5 * (self.metric[i] + self.metric[j])
+    def _pair(self, xi, mi, j):
+        """Grid offset d = x_j - x_i, squared physical distance r^2 (mm^2) through the pair's mean metric, the metric;
+        xi, mi: particle i's position and metric, held in registers over its candidates."""
+        d = self.pos[j] - xi
+        m = 0.5 * (mi + self.metric[j])
         return d, self._norm2(m, d), m
 
     @ti.kernel
@@ -459,12 +460,13 @@ class Bleeding:
             if i < self.alive_count[None]:
                 rho, rho_near = 0.0, 0.0
                 lo, hi, _ = self._candidates(i)
+                xi, mi = self.pos[i], self.metric[i]
                 for w in ti.static(range(MASK_WORDS)):
                     self.near[i, w] = ti.u32(0)
                 seen, c, bits = 0, 0, ti.u32(0)  # c: candidate number; bits: its word of the mask so far
                 for run in ti.static(range(3)):
                     for j in range(lo[run], hi[run]):
-                        _d, r2, _m = self._pair(i, j)
+                        _d, r2, _m = self._pair(xi, mi, j)
                         r = ti.sqrt(r2)
                         hit = (j != i) & (seen < MAX_NEIGHBOURS) & (r < h)
                         q = ti.select(hit, 1.0 - r / h, 0.0)
@@ -488,16 +490,17 @@ class Bleeding:
             if i < self.alive_count[None]:
                 shift = ti.Vector([0.0, 0.0])
                 lo, _hi, first = self._candidates(i)
+                xi, mi, pi = self.pos[i], self.metric[i], self.pressure[i]
                 for word in range(MASK_WORDS):
                     bits = self.near[i, word]
                     while bits:
                         j, bits = self._next_neighbour(i, word, bits, lo, first)
-                        d, r2, _ = self._pair(i, j)
+                        d, r2, _ = self._pair(xi, mi, j)
                         r = ti.sqrt(r2)
                         if r < h:
                             if r > 1e-6 * h:
                                 q = 1.0 - r / h
-                                p = self.pressure[i] + self.pressure[j]
+                                p = pi + self.pressure[j]
                                 push = 0.5 * dt * dt * (p[0] * q + p[1] * q * q)  # mm along r_hat
                                 shift -= push / r * d
                             else:  # coincident: separate along a deterministic direction
@@ -549,11 +552,12 @@ class Bleeding:
                 v = vi
                 if self.fate[i] == ALIVE and (sigma > 0.0 or beta > 0.0):
                     lo, _hi, first = self._candidates(i)
+                    xi, mi = self.pos[i], self.metric[i]
                     for word in range(MASK_WORDS):
                         bits = self.near[i, word]
                         while bits:
                             j, bits = self._next_neighbour(i, word, bits, lo, first)
-                            d, r2, m = self._pair(i, j)
+                            d, r2, m = self._pair(xi, mi, j)
                             r = ti.sqrt(r2)
                             dv = vi - self.vel[j]
                             u = (m[0] * dv[0] * d[0] + m[1] * (dv[0] * d[1] + dv[1] * d[0]) + m[2] * dv[1] * d[1]) / r

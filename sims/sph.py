@@ -7,15 +7,18 @@ spacing, interaction radius, speeds and gravity are in millimetres whatever the 
 - gravity in grid units a = G^-1 J^T g (the tangential part of g, exactly g sin(theta) on an incline);
 - a physical displacement of length s along a pair becomes s / r * d in the grid.
 
-One step (substepped): gravity with Nusselt film drag (exact exponential), advance, neighbour grid
-by counting sort, density and near density, double density relaxation (its displacement damped by
-the same drag, so pressure and gravity balance alike at any substep count), velocity from displacement
-(inertia factor I, speed clamp), clotting, viscosity impulses (sigma, beta), removal. The density pass
-keeps each particle's neighbour list for the relaxation and viscosity passes. Every kernel
-gathers from neighbours and writes only its own particle; the counting sort scatters serially in
-particle order and the pool is compacted serially, so results are bitwise identical across runs and
-thread counts. Work per particle is capped (MAX_NEIGHBOURS in range, MAX_CANDIDATES examined, lowest indices
-first), so dense clumps cost bounded time.
+One step (substepped): gravity with Nusselt film drag (exact exponential), advance, sort, density and near
+density, double density relaxation (its displacement damped by the same drag, so pressure and gravity balance
+alike at any substep count), velocity from displacement (inertia factor I, speed clamp), clotting, viscosity
+impulses (sigma, beta); after the substeps, suction and a last sort. The sort (a stable counting sort by cell) moves
+the alive particles to the front of the pool in cell order and counts and drops the others, so a particle's
+candidates are three contiguous runs of the pool (the rows of its 3 x 3 cells). The density pass marks the
+candidates in range in a bit mask (MAX_CANDIDATES bits) that the relaxation and viscosity passes walk. Every kernel
+gathers from neighbours and writes only its own particle; the sort's prefix sum and scatter run serially (a few
+per cent of the step on a CPU), so results are bitwise identical across runs and thread counts. Kernels loop over
+the pool's count at the start of the step and skip past the device's alive_count: the host reads the count back
+once per step. Work per particle is capped (MAX_NEIGHBOURS in range, MAX_CANDIDATES examined, first in cell order),
+so dense clumps cost bounded time.
 
 Accounting: spawned = alive + suctioned + left_surface + expired, exactly, at every step.
 
@@ -31,14 +34,16 @@ import math
 
 import numpy as np
 import taichi as ti
+from taichi.lang.util import to_numpy_type
 
 from sims.film import ParticleSplat
 from sims.hashing import hash01
 
 
 ALIVE, SUCTIONED, LEFT_SURFACE, EXPIRED = 0, 1, 2, 3
-MAX_NEIGHBOURS = 48         # neighbours in range that one particle interacts with, at most (kept in a list)
+MAX_NEIGHBOURS = 48         # neighbours in range that one particle interacts with, at most (kept as bits)
 MAX_CANDIDATES = 256        # particles one particle examines, at most (bounds the cost of dense clumps)
+MASK_WORDS = MAX_CANDIDATES // 32
 MAX_SUCTION_TOOLS = 8
 MAX_RELAX_FRACTION = 0.5    # largest relaxation displacement per substep, in interaction radii
 WALL_MARGIN = 1e-3          # walls keep particles this far (texels) inside the border of a valid texel
@@ -104,20 +109,18 @@ class Bleeding:
         )
         cell = self._cell_size(params["interaction_radius_mm"])
         self.cells_x, self.cells_y = max(1, math.ceil(width / cell[0])), max(1, math.ceil(height / cell[1]))
-        self.cell_size = ti.Vector.field(2, ti.f32, ())
-        self.cell_size[None] = cell
-        count = self.cells_x * self.cells_y
-        self.cell_count = ti.field(ti.i32, count)
-        self.cell_start = ti.field(ti.i32, count + 1)
+        keys = self.cells_x * self.cells_y + 3  # the cells, then one key per way of leaving (SUCTIONED ... EXPIRED)
+        self.cell_count = ti.field(ti.i32, keys)
+        self.cell_start = ti.field(ti.i32, keys + 1)
         capacity = max(self.capacity, 1)
         self.pos = ti.Vector.field(2, ti.f32, capacity)
         self.pos_prev = ti.Vector.field(2, ti.f32, capacity)
         self.pos_new = ti.Vector.field(2, ti.f32, capacity)
         self.vel = ti.Vector.field(2, ti.f32, capacity)
         self.vel_new = ti.Vector.field(2, ti.f32, capacity)
-        self.scratch_v2 = ti.Vector.field(2, ti.f32, (2, capacity))  # reordering buffers
-        self.scratch_f = ti.Vector.field(2, ti.f32, capacity)
-        self.scratch_uid = ti.field(ti.i32, capacity)
+        self.back_v2 = ti.Vector.field(2, ti.f32, (2, capacity))  # sorting buffers (with pos_new, vel_new)
+        self.back_f3 = ti.Vector.field(3, ti.f32, capacity)
+        self.back_i2 = ti.Vector.field(2, ti.i32, capacity)
         self.metric = ti.Vector.field(3, ti.f32, capacity)     # metric at the particle's texel
         self.density = ti.Vector.field(2, ti.f32, capacity)    # rho, rho_near
         self.pressure = ti.Vector.field(2, ti.f32, capacity)   # P, P_near
@@ -126,12 +129,11 @@ class Bleeding:
         self.clot = ti.field(ti.f32, capacity)
         self.uid = ti.field(ti.i32, capacity)
         self.fate = ti.field(ti.i32, capacity)                 # ALIVE or the reason it leaves
-        self.cell = ti.field(ti.i32, capacity)
+        self.cell = ti.field(ti.i32, capacity)                 # sort key: the cell, or past the cells when gone
         self.sorted = ti.field(ti.i32, capacity)
-        self.neighbours = ti.field(ti.i32, (capacity, MAX_NEIGHBOURS))  # found by the density pass, reused after
-        self.neighbour_count = ti.field(ti.i32, capacity)
+        self.near = ti.field(ti.u32, (capacity, MASK_WORDS))    # bit c: candidate c is a neighbour (density pass)
         self.counters = ti.field(ti.i32, 8)
-        self.alive_count = ti.field(ti.i32, ())
+        self.alive_count = ti.field(ti.i32, ())                # particles in use: the first alive_count of the pool
         self.suction_tools = ti.Vector.field(4, ti.f32, MAX_SUCTION_TOOLS)  # x, y, z (mm), radius (mm)
         self.suction_candidates = ti.field(ti.i32, ())
         self.splatter = ParticleSplat(surface)
@@ -144,6 +146,7 @@ class Bleeding:
         self.count, self.step_index = 0, 0
         self.moved = True  # whether the last step had particles to move (sims.models.BleedingMethod.moved)
         self.counters.fill(0)
+        self.alive_count[None] = 0
         self._spawn_budget, self._suction_budget = {}, 0.0
         self.pool_full_reported = False   # the pool was full when blood should have spawned
         self.pool_full_logged = False     # a front end has told the user
@@ -213,6 +216,7 @@ class Bleeding:
         self.fate.from_numpy(np.zeros(self.capacity, np.int32))
         self.counters[0] = count
         self.count = count
+        self.alive_count[None] = count
 
     @ti.kernel
     def _spawn(self, first: ti.i32, count: ti.i32, first_uid: ti.i32, row: ti.i32, col: ti.i32, radius_mm: ti.f32):
@@ -237,31 +241,31 @@ class Bleeding:
             self.clot[i] = 0.0
             self.uid[i] = uid
             self.fate[i] = ALIVE
+        self.alive_count[None] = first + count
 
     # --- the step -----------------------------------------------------------------------------
     def step(self, dt_s: float, suction: list = ()) -> None:
-        """Advance dt_s. suction: [(position_mm (3,), radius_mm, rate_ml_s)] of the tools switched on."""
+        """Advance dt_s. suction: [(position_mm (3,), radius_mm, rate_ml_s)] of the tools switched on. Kernels loop
+        over the pool's count at the start of the step and skip past the device's alive_count, so the only read back
+        is the count at the end (and the suction candidates while a suction tool is on)."""
         p = self.params
-        self.cell_size[None] = self._cell_size_for(p["interaction_radius_mm"])
+        size = self._cell_size_for(p["interaction_radius_mm"])
         self.moved = self.count > 0
         if self.count:
+            n, h = self.count, p["interaction_radius_mm"]
             substeps = p["substeps"]
             sub = dt_s / substeps
             nu = p["blood_viscosity_mpa_s"] * 1e-3 / p["blood_density_kg_m3"] * 1e6  # mm^2/s
             rest = self.rest_density
-            self._bin(self.count)
-            self._sort(self.count, self.cells_x * self.cells_y)
-            self._reorder(self.count)
             for _ in range(substeps):
-                self._predict(self.count, sub, nu, p["film_thickness_mm"], rest, p["pinning_density"] * rest, p["lifetime_s"])
-                self._bin(self.count)
-                self._sort(self.count, self.cells_x * self.cells_y)
-                self._density_pass(self.count, p["interaction_radius_mm"], rest, p["stiffness_mm_s2"], p["near_stiffness_mm_s2"])
-                self._relax(self.count, sub, p["interaction_radius_mm"])
-                self._finish(self.count, sub, p["inertia"], p["max_speed_mm_s"], p["clotting_rate_1_s"], p["rest_speed_mm_s"])
-                self._viscosity(self.count, sub, p["interaction_radius_mm"], p["viscosity_sigma_1_s"], p["viscosity_beta_s_mm"], p["max_speed_mm_s"])
+                self._predict(n, sub, nu, p["film_thickness_mm"], rest, p["pinning_density"] * rest, p["lifetime_s"])
+                self._sort(n, size[0], size[1])
+                self._density_pass(n, h, rest, p["stiffness_mm_s2"], p["near_stiffness_mm_s2"])
+                self._relax(n, sub, h)
+                self._finish(n, sub, p["inertia"], p["max_speed_mm_s"], p["clotting_rate_1_s"], p["rest_speed_mm_s"])
+                self._viscosity(n, sub, h, p["viscosity_sigma_1_s"], p["viscosity_beta_s_mm"], p["max_speed_mm_s"])
             self._apply_suction(dt_s, suction)
-            self._compact(self.count)
+            self._sort(n, size[0], size[1])  # drops those that left in the last substep or to suction
             self.count = int(self.alive_count[None])
         self.step_index += 1
 
@@ -326,7 +330,7 @@ class Bleeding:
     def _predict(self, n: ti.i32, dt: ti.f32, nu: ti.f32, film: ti.f32, rest: ti.f32, pinning: ti.f32, lifetime: ti.f32):
         """Gravity with film drag (exact), advance; particles off the surface or too old leave."""
         for i in range(n):
-            if self.fate[i] == ALIVE:
+            if i < self.alive_count[None] and self.fate[i] == ALIVE:
                 row, col, _ = self._texel(self.pos[i])
                 g = self.texel_gravity[row, col]
                 rho = self.density[i][0]
@@ -354,25 +358,23 @@ class Bleeding:
                     self.fate[i] = EXPIRED
 
     @ti.kernel
-    def _bin(self, n: ti.i32):
-        size = self.cell_size[None]
+    def _sort(self, n: ti.i32, size_x: ti.f32, size_y: ti.f32):
+        """Alive particles in cell order at the front of the pool (neighbours sit close in memory), the others counted
+        by fate and dropped: a stable counting sort (serial prefix sum and scatter, so deterministic), then a gather.
+        size_x, size_y: cell size in texels."""
+        cells = self.cells_x * self.cells_y
         for i in range(n):
-            cell = -1
-            if self.fate[i] == ALIVE:
-                x = self.pos[i]
-                cx = ti.min(ti.max(ti.cast(ti.floor(x[0] / size[0]), ti.i32), 0), self.cells_x - 1)
-                cy = ti.min(ti.max(ti.cast(ti.floor(x[1] / size[1]), ti.i32), 0), self.cells_y - 1)
-                cell = cy * self.cells_x + cx
-                ti.atomic_add(self.cell_count[cell], 1)
-                row, col, _ = self._texel(x)
-                self.metric[i] = self.texel_metric[row, col]
-            self.cell[i] = cell
-
-    @ti.kernel
-    def _sort(self, n: ti.i32, cells: ti.i32):
-        """Stable counting sort: prefix sum over cells, then particles in index order (serial, deterministic)."""
+            if i < self.alive_count[None]:
+                key = cells + self.fate[i] - 1
+                if self.fate[i] == ALIVE:
+                    x = self.pos[i]
+                    cx = ti.min(ti.max(ti.cast(ti.floor(x[0] / size_x), ti.i32), 0), self.cells_x - 1)
+                    cy = ti.min(ti.max(ti.cast(ti.floor(x[1] / size_y), ti.i32), 0), self.cells_y - 1)
+                    key = cy * self.cells_x + cx
+                ti.atomic_add(self.cell_count[key], 1)
+                self.cell[i] = key
         ti.loop_config(serialize=True)
-        for c in range(cells + 1):
+        for c in range(cells + 4):
             if c == 0:
                 self.cell_start[0] = 0
             else:
@@ -380,74 +382,106 @@ class Bleeding:
                 self.cell_count[c - 1] = 0
         ti.loop_config(serialize=True)
         for i in range(n):
-            cell = self.cell[i]
-            if cell >= 0:
-                self.sorted[self.cell_start[cell] + self.cell_count[cell]] = i
-                self.cell_count[cell] += 1
-        for c in range(cells):
+            if i < self.alive_count[None]:
+                key = self.cell[i]
+                self.sorted[self.cell_start[key] + self.cell_count[key]] = i
+                self.cell_count[key] += 1
+        for c in range(cells + 3):
             self.cell_count[c] = 0
-
-    @ti.kernel
-    def _reorder(self, n: ti.i32):
-        """Store the (all alive) particles in cell order: neighbours sit close in memory. Stable, deterministic."""
+        for fate in range(SUCTIONED, EXPIRED + 1):
+            self.counters[fate] += self.cell_start[cells + fate] - self.cell_start[cells + fate - 1]
+        self.alive_count[None] = self.cell_start[cells]
         for s in range(n):
-            i = self.sorted[s]
-            self.pos_new[s] = self.pos[i]
-            self.vel_new[s] = self.vel[i]
-            self.scratch_v2[0, s] = self.pos_prev[i]
-            self.scratch_v2[1, s] = self.density[i]
-            self.scratch_f[s] = ti.Vector([self.age[i], self.clot[i]])
-            self.scratch_uid[s] = self.uid[i]
+            if s < self.alive_count[None]:
+                i = self.sorted[s]
+                self.pos_new[s] = self.pos[i]
+                self.vel_new[s] = self.vel[i]
+                self.back_v2[0, s] = self.pos_prev[i]
+                self.back_v2[1, s] = self.density[i]
+                self.back_f3[s] = ti.Vector([self.age[i], self.clot[i], self.drag[i]])
+                self.back_i2[s] = ti.Vector([self.uid[i], self.cell[i]])
         for s in range(n):
-            self.pos[s] = self.pos_new[s]
-            self.vel[s] = self.vel_new[s]
-            self.pos_prev[s] = self.scratch_v2[0, s]
-            self.density[s] = self.scratch_v2[1, s]
-            self.age[s] = self.scratch_f[s][0]
-            self.clot[s] = self.scratch_f[s][1]
-            self.uid[s] = self.scratch_uid[s]
+            if s < self.alive_count[None]:
+                self.pos[s] = self.pos_new[s]
+                self.vel[s] = self.vel_new[s]
+                self.pos_prev[s] = self.back_v2[0, s]
+                self.density[s] = self.back_v2[1, s]
+                back_f, back_i = self.back_f3[s], self.back_i2[s]
+                self.age[s], self.clot[s], self.drag[s] = back_f[0], back_f[1], back_f[2]
+                self.uid[s], self.cell[s] = back_i[0], back_i[1]
+                self.fate[s] = ALIVE
+                row, col, _ = self._texel(self.pos[s])
+                self.metric[s] = self.texel_metric[row, col]
 
     @ti.func
-    def _pair(self, i, j):
-        """Grid offset d = x_j - x_i and physical distance r (mm) through the pair's mean metric."""
-        d = self.pos[j] - self.pos[i]
-        m = 0.5 * (self.metric[i] + self.metric[j])
-        r = ti.sqrt(ti.max(m[0] * d[0] * d[0] + 2.0 * m[1] * d[0] * d[1] + m[2] * d[1] * d[1], 0.0))
-        return d, r, m
+    def _candidates(self, i):
+        """The particles i examines: three runs lo[k] <= j < hi[k] of the sorted pool (the rows of its 3 x 3 cells),
+        MAX_CANDIDATES in all at most; first[k] is the candidate number of run k's first particle."""
+        cx, cy = self.cell[i] % self.cells_x, self.cell[i] // self.cells_x
+        x0, x1 = ti.max(cx - 1, 0), ti.min(cx + 1, self.cells_x - 1)
+        lo, hi, first = ti.Vector([0, 0, 0]), ti.Vector([0, 0, 0]), ti.Vector([0, 0, 0])
+        examined = 0
+        for k in ti.static(range(3)):
+            row = cy - 1 + k
+            first[k] = examined
+            if 0 <= row < self.cells_y:
+                lo[k] = self.cell_start[row * self.cells_x + x0]
+                hi[k] = ti.min(self.cell_start[row * self.cells_x + x1 + 1], lo[k] + MAX_CANDIDATES - examined)
+                examined += hi[k] - lo[k]
+        return lo, hi, first
 
     @ti.func
-    def _for_neighbours(self, i):
-        """Cell range of particle i's 3 x 3 neighbourhood."""
-        x = self.pos[i]
-        size = self.cell_size[None]
-        cx = ti.min(ti.max(ti.cast(ti.floor(x[0] / size[0]), ti.i32), 0), self.cells_x - 1)
-        cy = ti.min(ti.max(ti.cast(ti.floor(x[1] / size[1]), ti.i32), 0), self.cells_y - 1)
-        return ti.max(cx - 1, 0), ti.min(cx + 1, self.cells_x - 1), ti.max(cy - 1, 0), ti.min(cy + 1, self.cells_y - 1)
+    def _next_neighbour(self, i, word, bits, lo, first):
+        """(the particle of the lowest candidate left in bits, word `word` of i's neighbour mask; bits without it)."""
+        low = bits & (~bits + ti.u32(1))
+        c = word * 32 + 31 - ti.cast(ti.math.clz(low), ti.i32)
+        j = lo[0] + c - first[0]
+        for k in ti.static(range(1, 3)):
+            if c >= first[k]:
+                j = lo[k] + c - first[k]
+        return j, bits ^ low
+
+    @ti.func
+    def _norm2(self, m, v):
+        """Squared length (mm^2) of grid vector v through metric m (gxx, gxy, gyy)."""
+        return ti.max(m[0] * v[0] * v[0] + 2.0 * m[1] * v[0] * v[1] + m[2] * v[1] * v[1], 0.0)
+
+    @ti.func
+    def _pair(self, xi, mi, j):
+        """Grid offset d = x_j - x_i, squared physical distance r^2 (mm^2) through the pair's mean metric, the metric;
+        xi, mi: particle i's position and metric, held in registers over its candidates."""
+        d = self.pos[j] - xi
+        m = 0.5 * (mi + self.metric[j])
+        return d, self._norm2(m, d), m
 
     @ti.kernel
     def _density_pass(self, n: ti.i32, h: ti.f32, rest: ti.f32, k: ti.f32, k_near: ti.f32):
+        """Density and near density; marks the first MAX_NEIGHBOURS candidates in range as i's neighbours. Branch-free
+        over the candidates (a pair out of range adds exactly 0): in or out of range is a coin toss for the CPU."""
         for i in range(n):
-            if self.fate[i] == ALIVE:
+            if i < self.alive_count[None]:
                 rho, rho_near = 0.0, 0.0
-                x0, x1, y0, y1 = self._for_neighbours(i)
-                seen, examined = 0, 0
-                for cy in range(y0, y1 + 1):
-                    for cx in range(x0, x1 + 1):
-                        cell = cy * self.cells_x + cx
-                        for s in range(self.cell_start[cell], self.cell_start[cell + 1]):
-                            examined += 1
-                            if examined > MAX_CANDIDATES:
-                                break
-                            j = self.sorted[s]
-                            if j != i and seen < MAX_NEIGHBOURS:
-                                offset, r, pair_metric = self._pair(i, j)
-                                if r < h:
-                                    q = 1.0 - r / h
-                                    rho += q * q
-                                    rho_near += q * q * q
-                                    self.neighbours[i, seen] = j
-                                    seen += 1
-                self.neighbour_count[i] = seen
+                lo, hi, _ = self._candidates(i)
+                xi, mi = self.pos[i], self.metric[i]
+                for w in ti.static(range(MASK_WORDS)):
+                    self.near[i, w] = ti.u32(0)
+                seen, c, bits = 0, 0, ti.u32(0)  # c: candidate number; bits: its word of the mask so far
+                for run in ti.static(range(3)):
+                    for j in range(lo[run], hi[run]):
+                        _d, r2, _m = self._pair(xi, mi, j)
+                        r = ti.sqrt(r2)
+                        hit = (j != i) & (seen < MAX_NEIGHBOURS) & (r < h)
+                        q = ti.select(hit, 1.0 - r / h, 0.0)
+                        rho += q * q
+                        rho_near += q * q * q
+                        bits |= ti.select(hit, ti.u32(1) << ti.cast(c & 31, ti.u32), ti.u32(0))
+                        seen += ti.cast(hit, ti.i32)
+                        if c & 31 == 31:
+                            self.near[i, c >> 5] = bits
+                            bits = ti.u32(0)
+                        c += 1
+                if c & 31:
+                    self.near[i, c >> 5] = bits
                 self.density[i] = ti.Vector([rho, rho_near])
                 self.pressure[i] = ti.Vector([k * (rho - rest), k_near * rho_near])
 
@@ -455,35 +489,39 @@ class Bleeding:
     def _relax(self, n: ti.i32, dt: ti.f32, h: ti.f32):
         """Double density relaxation, symmetric gather: each pair moves i by -dt^2/2 (P_i + P_j)(...) r_hat."""
         for i in range(n):
-            shift = ti.Vector([0.0, 0.0])
-            if self.fate[i] == ALIVE:
-                for k in range(self.neighbour_count[i]):
-                    j = self.neighbours[i, k]
-                    d, r, pair_metric = self._pair(i, j)
-                    if r < h:
-                        if r > 1e-6 * h:
-                            q = 1.0 - r / h
-                            p = self.pressure[i] + self.pressure[j]
-                            push = 0.5 * dt * dt * (p[0] * q + p[1] * q * q)  # mm along r_hat
-                            shift -= push / r * d
-                        else:  # coincident: separate along a deterministic direction
-                            angle = 2.0 * math.pi * hash01(ti.u32(self.uid[i]), ti.u32(self.uid[j]))
-                            shift -= 0.05 * h * ti.Vector([ti.cos(angle), ti.sin(angle)]) / ti.sqrt(self.metric[i][0] + self.metric[i][2])
+            if i < self.alive_count[None]:
+                shift = ti.Vector([0.0, 0.0])
+                lo, _hi, first = self._candidates(i)
+                xi, mi, pi = self.pos[i], self.metric[i], self.pressure[i]
+                for word in range(MASK_WORDS):
+                    bits = self.near[i, word]
+                    while bits:
+                        j, bits = self._next_neighbour(i, word, bits, lo, first)
+                        d, r2, _ = self._pair(xi, mi, j)
+                        r = ti.sqrt(r2)
+                        if r < h:
+                            if r > 1e-6 * h:
+                                q = 1.0 - r / h
+                                p = pi + self.pressure[j]
+                                push = 0.5 * dt * dt * (p[0] * q + p[1] * q * q)  # mm along r_hat
+                                shift -= push / r * d
+                            else:  # coincident: separate along a deterministic direction
+                                angle = 2.0 * math.pi * hash01(ti.u32(self.uid[i]), ti.u32(self.uid[j]))
+                                shift -= 0.05 * h * ti.Vector([ti.cos(angle), ti.sin(angle)]) / ti.sqrt(self.metric[i][0] + self.metric[i][2])
                 damping = self.drag[i] * dt  # pressure moves the film against the same drag as gravity
                 if damping > 1e-6:
                     shift *= (1.0 - ti.exp(-damping)) / damping
-                m = self.metric[i]
-                length = ti.sqrt(ti.max(m[0] * shift[0] * shift[0] + 2.0 * m[1] * shift[0] * shift[1] + m[2] * shift[1] * shift[1], 0.0))
+                length = ti.sqrt(self._norm2(self.metric[i], shift))
                 limit = MAX_RELAX_FRACTION * h
                 if length > limit:
                     shift *= limit / length
-            self.pos_new[i] = self.pos[i] + shift
+                self.pos_new[i] = self.pos[i] + shift
 
     @ti.kernel
     def _finish(self, n: ti.i32, dt: ti.f32, inertia: ti.f32, max_speed: ti.f32, clotting: ti.f32, rest_speed: ti.f32):
         """Velocity from displacement (inertia, clamp), clotting; leaving the surface."""
         for i in range(n):
-            if self.fate[i] == ALIVE:
+            if i < self.alive_count[None]:
                 start = self.pos_prev[i]
                 moved = (self.pos_new[i] - start) * (1.0 - self.clot[i])
                 if ti.static(self.walls):  # the velocity below loses the part that went into the wall
@@ -500,7 +538,7 @@ class Bleeding:
     @ti.func
     def _clamp_speed(self, v, m, max_speed):
         """(v scaled to at most max_speed mm/s through metric m, its speed in mm/s)."""
-        speed = ti.sqrt(ti.max(m[0] * v[0] * v[0] + 2.0 * m[1] * v[0] * v[1] + m[2] * v[1] * v[1], 0.0))
+        speed = ti.sqrt(self._norm2(m, v))
         if speed > max_speed:
             v *= max_speed / speed
             speed = max_speed
@@ -508,32 +546,39 @@ class Bleeding:
 
     @ti.kernel
     def _viscosity(self, n: ti.i32, dt: ti.f32, h: ti.f32, sigma: ti.f32, beta: ti.f32, max_speed: ti.f32):
-        """Viscosity impulses between approaching pairs, gathered: v_i -= I_ij / 2; then the speed clamp."""
+        """Viscosity impulses between approaching pairs, gathered: v_i -= I_ij / 2; then the speed clamp. Branch-free
+        over the neighbours (a pair that does not push subtracts exactly 0)."""
         for i in range(n):
-            v = self.vel[i]
-            if self.fate[i] == ALIVE and (sigma > 0.0 or beta > 0.0):
-                for k in range(self.neighbour_count[i]):
-                    j = self.neighbours[i, k]
-                    if self.fate[j] == ALIVE:
-                        d, r, m = self._pair(i, j)
-                        if 1e-6 * h < r < h:
-                            dv = self.vel[i] - self.vel[j]
+            if i < self.alive_count[None]:
+                vi = self.vel[i]
+                v = vi
+                if self.fate[i] == ALIVE and (sigma > 0.0 or beta > 0.0):
+                    lo, _hi, first = self._candidates(i)
+                    xi, mi = self.pos[i], self.metric[i]
+                    for word in range(MASK_WORDS):
+                        bits = self.near[i, word]
+                        while bits:
+                            j, bits = self._next_neighbour(i, word, bits, lo, first)
+                            d, r2, m = self._pair(xi, mi, j)
+                            r = ti.sqrt(r2)
+                            dv = vi - self.vel[j]
                             u = (m[0] * dv[0] * d[0] + m[1] * (dv[0] * d[1] + dv[1] * d[0]) + m[2] * dv[1] * d[1]) / r
-                            if u > 0.0:
-                                impulse = dt * (1.0 - r / h) * (sigma * u + beta * u * u)
-                                v -= 0.5 * ti.min(impulse, u) / r * d
-            if self.fate[i] == ALIVE:
-                row, col, _ = self._texel(self.pos[i])
-                v, _ = self._clamp_speed(v, self.texel_metric[row, col], max_speed)
-            self.vel_new[i] = v
+                            impulse = dt * (1.0 - r / h) * (sigma * u + beta * u * u)
+                            pushes = (self.fate[j] == ALIVE) & (1e-6 * h < r) & (r < h) & (u > 0.0)
+                            v -= ti.select(pushes, 0.5 * ti.min(impulse, u) / r, 0.0) * d
+                if self.fate[i] == ALIVE:
+                    row, col, _ = self._texel(self.pos[i])
+                    v, _ = self._clamp_speed(v, self.texel_metric[row, col], max_speed)
+                self.vel_new[i] = v
         for i in range(n):
-            self.vel[i] = self.vel_new[i]
+            if i < self.alive_count[None]:
+                self.vel[i] = self.vel_new[i]
 
     @ti.kernel
     def _count_suction(self, n: ti.i32, tools: ti.i32):
         self.suction_candidates[None] = 0
         for i in range(n):
-            if self.fate[i] == ALIVE and self._in_suction(i, tools):
+            if i < self.alive_count[None] and self.fate[i] == ALIVE and self._in_suction(i, tools):
                 ti.atomic_add(self.suction_candidates[None], 1)
 
     @ti.func
@@ -549,33 +594,21 @@ class Bleeding:
     @ti.kernel
     def _remove_suctioned(self, n: ti.i32, tools: ti.i32, probability: ti.f32, step: ti.i32):
         for i in range(n):
-            if self.fate[i] == ALIVE and self._in_suction(i, tools):
+            if i < self.alive_count[None] and self.fate[i] == ALIVE and self._in_suction(i, tools):
                 if hash01(ti.u32(self.uid[i]), ti.u32(step) + ti.u32(7)) < probability:
                     self.fate[i] = SUCTIONED
 
-    @ti.kernel
-    def _compact(self, n: ti.i32):
-        """Keep alive particles in order at the front of the pool; count the others by fate (serial)."""
-        self.alive_count[None] = 0
-        ti.loop_config(serialize=True)
-        for i in range(n):
-            fate = self.fate[i]
-            if fate == ALIVE:
-                k = self.alive_count[None]
-                if k != i:
-                    self.pos[k] = self.pos[i]
-                    self.pos_prev[k] = self.pos_prev[i]
-                    self.vel[k] = self.vel[i]
-                    self.density[k] = self.density[i]
-                    self.age[k] = self.age[i]
-                    self.clot[k] = self.clot[i]
-                    self.uid[k] = self.uid[i]
-                    self.fate[k] = ALIVE
-                self.alive_count[None] = k + 1
-            else:
-                self.counters[fate] += 1
-
     # --- outputs ------------------------------------------------------------------------------
+    def memory_bytes(self) -> dict:
+        """Bytes held in Taichi fields: 'particles' (sized by the capacity) and 'grid' (texel maps, cells, splat)."""
+        fields = [value for value in [*vars(self).values(), *vars(self.splatter).values()] if isinstance(value, ti.Field)]
+        sizes = {"particles": 0, "grid": 0}
+        for field in fields:
+            lanes = getattr(field, "n", 1) * getattr(field, "m", 1)
+            size = int(np.prod(field.shape)) * lanes * np.dtype(to_numpy_type(field.dtype)).itemsize
+            sizes["particles" if self.capacity in field.shape else "grid"] += size
+        return sizes
+
     def accounting(self) -> dict:
         counters = self.counters.to_numpy()
         result = {key: int(counters[index]) for index, key in enumerate(KEYS)}

@@ -180,6 +180,12 @@ def test_every_slider_at_each_end(patch_256, end):
         assert_bounded(bleeding, bleeding.params["max_speed_mm_s"], name)
 
 
+def test_a_pool_of_a_million_particles_takes_under_300_mb(patch_256):
+    """The fields sized by the pool grow linearly: bytes per particle x 1M (issue 13)."""
+    per_particle = bleeding_on(patch_256, capacity=1000).memory_bytes()["particles"] / 1000
+    assert per_particle * 1_000_000 < 300e6
+
+
 def test_pool_full_is_counted_not_silent(patch_256):
     bleeding = bleeding_on(patch_256, capacity=100)
     assert bleeding.spawn((128, 128), 150, 1.0) == 100

@@ -1,5 +1,6 @@
 """Bleeding: throughput against the NumPy + cKDTree step, and density error against substeps and time step."""
 import math
+import time
 
 import numpy as np
 
@@ -13,10 +14,10 @@ def _defaults() -> dict:
     return {name: spec.default for name, spec in params.BLEEDING.items()}
 
 
-def throughput(count: int, steps: int, numpy_steps: int) -> dict:
-    """Particle-steps per second of sims.sph and of the NumPy + cKDTree step on the same particles: a disk at rest
-    spacing on a flat plane, no gravity, default parameters, dt 0.01 s."""
-    from lab.sph_reference import NumpyBleeding, disk_positions
+def disk(count: int):
+    """(sims.sph.Bleeding holding `count` particles at rest spacing in a disk on a flat plane, no gravity, default
+    parameters, stepped once to compile; the disk's positions in mm)."""
+    from lab.sph_reference import disk_positions
     from sims.sph import Bleeding
 
     values = _defaults()
@@ -28,14 +29,58 @@ def throughput(count: int, steps: int, numpy_steps: int) -> dict:
     grid[:, 1] = size - grid[:, 1]  # rows grow toward -y
     bleeding.place(grid)
     bleeding.step(0.01)  # compile
+    return bleeding, positions
+
+
+def throughput(count: int, steps: int, numpy_steps: int) -> dict:
+    """Particle-steps per second of sims.sph and of the NumPy + cKDTree step on the same particles (disk()), dt 0.01 s."""
+    from lab.sph_reference import NumpyBleeding
+
+    bleeding, positions = disk(count)
     taichi_rate = count * steps / synced_seconds(lambda: bleeding.step(0.01), steps)
-    row = {"particles": count, "texture_size": size, "taichi_particle_steps_per_s": taichi_rate, "taichi_steps_per_s": taichi_rate / count}
+    row = {"particles": count, "texture_size": bleeding.width, "taichi_particle_steps_per_s": taichi_rate,
+           "taichi_steps_per_s": taichi_rate / count, "particle_fields_mb": bleeding.memory_bytes()["particles"] / 1e6}
     if numpy_steps:
+        values = _defaults()
         reference = NumpyBleeding(positions, values)
         reference.step(0.01)
         numpy_rate = count * numpy_steps / synced_seconds(lambda: reference.step(0.01), numpy_steps)
         row.update(numpy_particle_steps_per_s=numpy_rate, speedup=taichi_rate / numpy_rate)
     return row
+
+
+def profile(count: int, steps: int = 5) -> dict:
+    """ms per step spent in each Taichi kernel of sims.sph.Bleeding.step (device synchronised around every call, so
+    launches are serialised) and in the whole step, for disk(count); 'host' is the step less its kernels."""
+    import taichi as ti
+
+    bleeding, _ = disk(count)
+    spent = {}
+
+    def timed(name, kernel):
+        def call(*args):
+            ti.sync()
+            start = time.perf_counter()
+            kernel(*args)
+            ti.sync()
+            spent[name] = spent.get(name, 0.0) + time.perf_counter() - start
+        return call
+
+    for name, member in type(bleeding).__dict__.items():
+        if getattr(member, "_is_wrapped_kernel", False):
+            setattr(bleeding, name, timed(name, getattr(bleeding, name)))
+    best = {}
+    for _ in range(3):  # best of 3 runs of `steps` steps, per kernel
+        spent.clear()
+        ti.sync()
+        start = time.perf_counter()
+        for _ in range(steps):
+            bleeding.step(0.01)
+        ti.sync()
+        spent["step"] = time.perf_counter() - start
+        spent["host"] = spent["step"] - sum(value for key, value in spent.items() if key != "step")
+        best = {key: min(value, best.get(key, float("inf"))) for key, value in spent.items()}
+    return {"particles": count, "ms_per_step": {key: 1000.0 * value / steps for key, value in best.items()}}
 
 
 def settle(substeps: int, dt_s: float, seconds: float = 3.0) -> dict:
@@ -66,15 +111,16 @@ def settle(substeps: int, dt_s: float, seconds: float = 3.0) -> dict:
 
 
 def run(quick: bool) -> dict:
-    counts = (1_000, 10_000, 30_000) if quick else (1_000, 3_000, 10_000, 30_000, 100_000, 300_000)
+    counts = (1_000, 10_000, 30_000) if quick else (1_000, 3_000, 10_000, 30_000, 100_000, 300_000, 1_000_000)
     rows = []
     for count in counts:
-        numpy_steps = 0 if count > 100_000 else max(1, min(10, 30_000 // count))
+        numpy_steps = 0 if count > 300_000 else max(1, min(10, 30_000 // count))  # 1M: about 20 s a step, 1 GB
         rows.append(throughput(count, steps=max(3, min(40, 200_000 // count)) if not quick else max(3, min(10, 50_000 // count)), numpy_steps=numpy_steps))
+    profiles = [profile(count) for count in ((1_000,) if quick else (1_000, 100_000))]
     substeps = (1, 2, 4) if quick else (1, 2, 4, 8)
     time_steps = (0.01,) if quick else (0.005, 0.01, 0.02)
     density = [settle(n, dt, 1.0 if quick else 3.0) for dt in time_steps for n in substeps]
-    return {"throughput": rows, "density": density, "capacity_note": "the largest N is the largest pool measured"}
+    return {"throughput": rows, "profile": profiles, "density": density, "capacity_note": "the largest N is the largest pool measured"}
 
 
 def render(results: dict) -> list[str]:
@@ -84,13 +130,20 @@ def render(results: dict) -> list[str]:
         "Particles at rest spacing (0.5 mm) in a disk on a flat plane, no gravity, default parameters (2 substeps per",
         "0.01 s step). The NumPy + scipy cKDTree version of the same step (lab/sph_reference.py) runs in the same process.",
         "",
-        "| particles | Taichi steps/s | Taichi particle-steps/s | NumPy+cKDTree particle-steps/s | speed-up |",
-        "|---|---|---|---|---|",
+        "| particles | Taichi steps/s | Taichi particle-steps/s | NumPy+cKDTree particle-steps/s | speed-up | particle fields (MB) |",
+        "|---|---|---|---|---|---|",
     ]
     for row in results["throughput"]:
         numpy_rate = f"{row['numpy_particle_steps_per_s']:.3g}" if "numpy_particle_steps_per_s" in row else "not run"
         speedup = f"{row['speedup']:.1f}x" if "speedup" in row else "-"
-        lines.append(f"| {row['particles']:,} | {row['taichi_steps_per_s']:.1f} | {row['taichi_particle_steps_per_s']:.3g} | {numpy_rate} | {speedup} |")
+        lines.append(f"| {row['particles']:,} | {row['taichi_steps_per_s']:.1f} | {row['taichi_particle_steps_per_s']:.3g} | {numpy_rate} | {speedup} "
+                     f"| {row['particle_fields_mb']:.1f} |")
+    profiles = results.get("profile", [])
+    if profiles:
+        names = sorted(profiles[0]["ms_per_step"], key=lambda name: (name in ("step", "host"), name))
+        lines += ["", "ms per step in each kernel of the same step (device synchronised around every kernel; 'host': the rest):", "",
+                  "| particles | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]
+        lines += [f"| {row['particles']:,} | " + " | ".join(f"{row['ms_per_step'].get(name, 0.0):.3g}" for name in names) + " |" for row in profiles]
     lines += [
         "",
         "## Bleeding: density error against substeps and time step",

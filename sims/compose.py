@@ -46,6 +46,7 @@ BLOOD_ROUGHNESS = (0.1, 0.4)            # fresh, clotted
 WET_MM = 0.01                           # blood depth at which the surface is wet (glossy) by 1 - 1/e
 POOL_LEVEL_MM = 0.2                     # blood deeper than this has a level surface over the tissue's relief
 NORMAL_LEVEL = 127.5                    # 8-bit normal maps: 0 maps to 127.5
+COPY_ALL_SHARE = 0.25                   # compose copies whole maps off the device when more tiles than this changed
 ENCODE_STEPS = 16384                    # linear light -> 8-bit sRGB by table: within a level of the exact encoding
 
 
@@ -180,7 +181,14 @@ class Composer:
         return self.shown[1], self.shown[2]
 
     def _copy_out(self, tiles, written: np.ndarray) -> None:
-        """Copy the written tiles' maps from the device into new copies of the shown arrays (one transfer each)."""
+        """Copy the written tiles' maps from the device into new copies of the shown arrays (one transfer each); when
+        more than COPY_ALL_SHARE of the tiles were written, the whole maps (cheaper than packing that many tiles)."""
+        if len(written) > COPY_ALL_SHARE * tiles.tiles:
+            shown = (self.rgb.to_numpy(), self.normal.to_numpy(), self.roughness.to_numpy())
+            for array in shown:
+                array.flags.writeable = False
+            self.shown = shown
+            return
         t = tiles.tile
         out = [np.empty((len(written), t, t) + tail, np.uint8) for tail in ((3,), (3,), ())]
         self._pack(tiles.tile, tiles.cols, written, *out)

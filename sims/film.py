@@ -18,6 +18,7 @@ import math
 import numpy as np
 import taichi as ti
 
+from sims.display_tiles import grow
 from sims.resample import GridReader
 
 SPLAT_SCALE = 1024  # fixed-point units of one particle in the splat grid (integer atomics: deterministic)
@@ -161,9 +162,7 @@ class BloodFilm(GridReader):
         touched = self.touched.to_numpy().astype(bool)
         self._settled = not touched.any() and not self.bleeding.moved  # nothing decays and nothing comes: steady
         if touched.any():
-            padded = np.pad(touched, 1)
-            touched = np.any([padded[1 + dr:1 + dr + touched.shape[0], 1 + dc:1 + dc + touched.shape[1]]
-                              for dr in (-1, 0, 1) for dc in (-1, 0, 1)], axis=0)
+            touched = grow(touched, 1, 1)
             self._take_near()
             self.touched.fill(0)
         return touched

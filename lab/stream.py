@@ -308,7 +308,7 @@ class _TileGeometry:
 class _Node:
     name: str
     handle: object = None
-    replaced_at: float = 0.0     # when its successor was added, time.monotonic() s
+    replaced_at: float = 0.0     # when its successor was added, the stream's clock, s
     mark: float = 0.0            # stream position after its own message (ClientSync positions)
     successor_mark: float = 0.0  # stream position after its successor's message
 
@@ -340,7 +340,7 @@ class _Viewer:
         self.root = client.scene.add_frame(name, show_axes=False)
         self.nodes: list[_Node | None] = [None] * tile_count  # the newest node showing each tile
         self.versions = [-1] * tile_count                      # the version each tile node shows
-        self.added_at = [-1.0] * tile_count                    # when each was added, time.monotonic() s
+        self.added_at = [-1.0] * tile_count                    # when each was added, the stream's clock, s
         self.retiring: list[_Node] = []                        # replaced nodes, oldest first
         self.max_nodes = max_nodes
         self.names: list[str] = []                             # every node name this browser has been sent
@@ -420,7 +420,7 @@ class TextureStream:
                  max_pool: int | None = None, max_tiles_per_s: float | None = None, image_format: str = "png",
                  seamless_normals: bool = True, roughness: float = 0.7, receive_shadow: bool = True,
                  wait_for_clients: bool = True, max_hide_s: float | None = None, min_change: int = 3,
-                 settle_s: float = 1.0, normal_divisor: int = 1, roughness_divisor: int = 2):
+                 settle_s: float = 1.0, normal_divisor: int = 1, roughness_divisor: int = 2, clock=time.monotonic):
         """server: viser.ViserServer. surface: anything with vertices_mm (V, 3), faces (F, 3) and uv (V, 2) in [0, 1]
         (OBJ convention, v up), e.g. sims.surface.TissueSurface. name: the scene node holding each browser's tiles.
         tiles: K, for K x K UV tiles. hide_after_s: how long a replaced tile node stays under its successor at least
@@ -436,7 +436,9 @@ class TextureStream:
         add invisible triangles so the normals the browser recomputes per tile equal those of the whole mesh welded
         at UV seams. roughness: the material's PBR roughness (metalness 0) when update gets no roughness map.
         receive_shadow: shadows of other objects fall on it. normal_divisor, roughness_divisor: 1 or 2, that map goes at
-        the colour's resolution or at half of it (2 x 2 texel means)."""
+        the colour's resolution or at half of it (2 x 2 texel means). clock: () -> seconds, the time the rate limit, settling
+        and hiding go by (a bench passes the simulated time, so the stream publishes per simulated second what the lab
+        publishes per second)."""
         if tiles < 1:
             raise ValueError("tiles must be >= 1")
         if image_format not in ("png", "jpeg"):
@@ -453,6 +455,7 @@ class TextureStream:
         self.receive_shadow = bool(receive_shadow)
         self.max_hide_s = None if max_hide_s is None else float(max_hide_s)
         self.min_change, self.settle_s = int(min_change), float(settle_s)
+        self.clock = clock
         self._lock = threading.Lock()
         self._closed = False
         self._queued = 0        # tile messages queued to any browser so far: the ClientSync positions
@@ -575,7 +578,7 @@ class TextureStream:
         with self._lock:
             if self._closed:
                 return {"tiles_sent": 0, "bytes": 0, "tiles_deferred": 0}
-            now = time.monotonic()
+            now = self.clock()
             layout = (rgb.shape[:2], tuple(maps))
             if layout != self._shape:
                 self._layout(*layout)

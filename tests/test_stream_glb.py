@@ -291,6 +291,27 @@ def test_stream_rate_limit_defers_changed_tiles_and_sends_their_newest_crop(serv
     stream.close()
 
 
+def test_stream_rate_limit_follows_the_clock_it_is_given(server):
+    """A bench passes the simulated time as the clock: the stream then publishes per simulated second what the lab
+    publishes per second, however fast or slow the machine runs (lab.bench.common.lab_stream)."""
+    from lab.stream import TextureStream
+
+    now = [0.0]
+    stream = TextureStream(server, bumpy_patch(), tiles=4, max_tiles_per_s=8.0, settle_s=0.0, clock=lambda: now[0])
+    image = np.zeros((64, 64, 3), np.uint8)
+    assert stream.update(image)["tiles_sent"] == 16  # the first texture goes whole
+    sent = []
+    for value in range(1, 17):  # every tile changes at every update, 1/8 s of the clock apart
+        now[0] = 0.125 * value
+        image[:] = value
+        sent.append(stream.update(image)["tiles_sent"])
+    assert sent == [4] + [1] * 15  # half a second's burst, then 8 per second of the clock: one per update
+    now[0] += 10.0  # a long quiet spell of the clock: only the burst is saved up
+    image[:] = 99
+    assert stream.update(image)["tiles_sent"] == 4
+    stream.close()
+
+
 def test_stream_compares_only_the_blocks_its_maker_flags_and_keeps_deferred_tiles(server):
     """update(changed=(tile, flags)): texels outside the flagged blocks are taken as unchanged (the scene knows what it
     recomposed), so a change there is not looked at; a flagged tile the rate limit defers is still sent later, when

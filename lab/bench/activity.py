@@ -6,7 +6,7 @@ import time
 
 import numpy as np
 
-from lab.bench.common import pyplot, save
+from lab.bench.common import lab_stream, pyplot, save, stream_frame
 from sims.config import REPO_ROOT
 
 STAGES = ("cautery", "bleeding", "compose", "encoding")
@@ -46,12 +46,12 @@ def _drive(scene, case: str, points_added: list) -> None:
 def case_cost(size: int, case: str, seconds: float, server) -> dict:
     """Wall ms per simulated second in each stage for one case on the patch with both models (hemostasis.yaml's
     tissue and bleeding), the display composed and streamed 10 times per simulated second to a stream without
-    browsers (encoding: change detection and the changed tiles' PNGs in GLBs)."""
-    from lab.stream import TextureStream
+    browsers made as the lab makes it, on simulated time (encoding: change detection and the published tiles' PNGs in
+    GLBs, at most the lab's rate limit of tile versions per simulated second)."""
     from sims.scene import Scene
 
     scene = Scene.from_file(REPO_ROOT / "scenes" / "hemostasis.yaml", [f"texture_size={size}", *BASE])
-    stream = TextureStream(server, scene.surface, name=f"/activity/{size}", hide_after_s=0.0)
+    stream = lab_stream(server, scene, f"/activity/{size}")
     points: list = []
     every = max(1, int(round(1.0 / (FRAMES_PER_SIMULATED_S * scene.time_step_s))))
     warm = int(round(0.3 / scene.time_step_s))  # compile, the first step's pass over every tile, the first frame
@@ -63,14 +63,8 @@ def case_cost(size: int, case: str, seconds: float, server) -> dict:
         _drive(scene, case, points)
         scene.step()
         if step % every == 0:
-            rgb = scene.composite()
-            start = time.perf_counter()
-            maps = scene.material_maps()  # the maps' copy off the device is composing too
-            maps_s += time.perf_counter() - start
-            start = time.perf_counter()
-            sent += stream.update(rgb, *maps, changed=scene.take_display_changes())["bytes"]
-            encoding += time.perf_counter() - start
-            updates += 1
+            frame = stream_frame(scene, stream)
+            maps_s, encoding, sent, updates = maps_s + frame[0], encoding + frame[1], sent + frame[2], updates + 1
     stream.close()
     simulated = (steps - warm) * scene.time_step_s
     cost = {stage: 1000.0 * scene.model_seconds.get(stage, 0.0) / simulated for stage in STAGES[:3]}
@@ -140,7 +134,8 @@ def render(results: dict) -> list[str]:
         f"run for {results['rows'][0]['simulated_s']:g} simulated s after a warm-up: idle (tools parked and off, no bleeding), one or two",
         f"tools burning along strokes at {STROKE_MM_S:g} mm/s, one or four vessels bleeding 0.03 ml/s. Wall ms per simulated second in",
         "each stage (device synchronised around each), the display composed and streamed 10 times per simulated second",
-        "(encoding: the stream's change detection and the changed tiles' maps as PNG in GLB). % of a core: the total at",
+        "(encoding: the stream's change detection and the changed tiles' maps as PNG in GLB, at most the lab's rate limit of",
+        "tile versions per simulated second). % of a core: the total at",
         "real time, as the lab runs.",
         "",
         "| texels | case | " + " | ".join(STAGES) + " | total | % of a core | kB per update |",

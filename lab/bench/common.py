@@ -1,4 +1,4 @@
-"""Shared pieces of the benchmark sections: test surfaces, device description, plotting setup."""
+"""Shared pieces of the benchmark sections: test surfaces, the lab's display updates, device description, plotting setup."""
 import math
 import platform
 from pathlib import Path
@@ -49,6 +49,27 @@ def build_plane(side_mm: float, size: int):
     from sims.surface import build_surface
 
     return build_surface(plane_mesh(side_mm, side_mm), size)
+
+
+def lab_stream(server, scene, name: str):
+    """A lab.stream.TextureStream made as the lab makes one (lab.app: its defaults, so the same tiles, maps and rate
+    limit), on the scene's simulated clock: per simulated second it publishes what the lab publishes per second."""
+    from lab.stream import TextureStream
+
+    return TextureStream(server, scene.surface, name=name, clock=lambda: scene.time_s)
+
+
+def stream_frame(scene, stream) -> tuple[float, float, int]:
+    """One display update as the lab makes it: compose (timed by the scene's profile as `compose`), copy the maps off
+    the device, hand the changed tiles to stream. Returns (wall s copying the maps, wall s in the stream, GLB bytes
+    published)."""
+    rgb = scene.composite()
+    start = time.perf_counter()
+    maps = scene.material_maps()  # the maps' copy off the device is composing too
+    maps_s = time.perf_counter() - start
+    start = time.perf_counter()
+    sent = stream.update(rgb, *maps, changed=scene.take_display_changes())["bytes"]
+    return maps_s, time.perf_counter() - start, sent
 
 
 def device_description(arch: str) -> dict:

@@ -3,7 +3,7 @@ scene is seen to pay only for the models it names; and how long a trainer waits 
 import socket
 import time
 
-from lab.bench.common import save, pyplot
+from lab.bench.common import lab_stream, pyplot, save, stream_frame
 from sims.config import REPO_ROOT
 
 FRAMES_PER_SIMULATED_S = 10  # display updates: the browser lab sends about 10 per second
@@ -19,16 +19,15 @@ def _free_port() -> int:
 
 def scene_cost(path, seconds: float, server) -> dict:
     """Run the first `seconds` of a scene with profiling; every 1/10 simulated s compose the texture and hand the
-    changed tiles to a TextureStream on a viser server with no client (encoding = the tiles' colour, normal and
-    roughness PNGs in GLBs)."""
-    from lab.stream import TextureStream
+    changed tiles to a TextureStream made as the lab makes it, on simulated time, on a viser server with no client
+    (encoding = change detection and the published tiles' colour, normal and roughness PNGs in GLBs)."""
     from sims.scene import Scene
 
     scene = Scene.from_file(path)
-    stream = TextureStream(server, scene.surface, name=f"/bench/{path.stem}", hide_after_s=0.0)
     scene.step()  # compile the step kernels, then the display ones
-    stream.update(scene.composite(), *scene.material_maps(), changed=scene.take_display_changes())
     scene.reset()
+    stream = lab_stream(server, scene, f"/bench/{path.stem}")
+    stream_frame(scene, stream)
     scene.profile = True
     steps = max(1, int(round(seconds / scene.time_step_s)))
     every = max(1, int(round(1.0 / (FRAMES_PER_SIMULATED_S * scene.time_step_s))))
@@ -36,14 +35,8 @@ def scene_cost(path, seconds: float, server) -> dict:
     for step in range(1, steps + 1):
         scene.step()
         if step % every == 0:
-            rgb = scene.composite()
-            start = time.perf_counter()
-            maps = scene.material_maps()  # the maps' copy off the device is composing too
-            maps_s += time.perf_counter() - start
-            start = time.perf_counter()
-            sent_bytes += stream.update(rgb, *maps, changed=scene.take_display_changes())["bytes"]
-            encoding += time.perf_counter() - start
-            updates += 1
+            frame = stream_frame(scene, stream)
+            maps_s, encoding, sent_bytes, updates = maps_s + frame[0], encoding + frame[1], sent_bytes + frame[2], updates + 1
     stream.close()
     simulated = steps * scene.time_step_s
     cost = {model: 1000.0 * scene.model_seconds.get(model, 0.0) / simulated for model in MODELS[:3]}
@@ -105,7 +98,7 @@ def render(results: dict) -> list[str]:
         f"Each scene in scenes/ run from t = 0 for {results['scenes'][0]['simulated_s']:g} simulated s at its own texture size and time step, the",
         f"fastest of {results['scenes'][0].get('runs', 1)} runs; wall milliseconds per simulated second in each model (device synchronised around each),",
         f"with {results['frames_per_simulated_s']} display updates per simulated second composed and encoded as the browser lab does (changed 64²",
-        "tiles as PNG in GLB). A model the scene does not name costs nothing. Real-time factor: simulated seconds per wall second.",
+        "tiles as PNG in GLB, at most the lab's stream rate limit of tile versions per simulated second). A model the scene does not name costs nothing. Real-time factor: simulated seconds per wall second.",
         "Build: wall seconds until the scene shows in the lab (lab session build, first step and composite), when the lab",
         "starts on it and when it is built again (a scene switch or a rebuild slider).",
         "",

@@ -77,7 +77,7 @@ from sims.seams import seam_links
 from sims.tiles import TILE, TileSchedule
 
 KEYS = ("spawned", "suctioned", "left_surface", "dried", "dropped_too_deep")
-SUCTIONED, LEFT, DRIED = range(3)  # columns of the per-tile counters of a step (zeroed by its first substep)
+SUCTIONED, LEFT, DRIED = range(3)  # columns of the per-tile counters of a step (added to the totals by _sinks)
 NONE, OWNED, BACKWARD, OUTFALL = range(4)   # pipe kinds per texel and direction
 CAPACITY_MM = 64.0              # depth a texel of the largest area holds at VOLUME_LEVELS units
 VOLUME_LEVELS = 1 << 24         # units per texel at most from sources (per-tile i32 counters stay below 2^30 per step)
@@ -208,9 +208,10 @@ class HeightFieldBleeding:
         self.pipe_width.from_numpy(pipe_width.astype(np.float32))
         self.tiles = TileSchedule(mask, link_start, link_to, 1)
         self.counts = ti.field(ti.i32, (self.tiles.tiles, 3))
+        self.sink_totals = ti.field(ti.i64, 3)           # units suctioned, left, dried since the reset (exact)
         self.stats = ti.field(ti.f32, 3)                 # largest wave speed (mm/s); at sources: g_n h, g_n h_source (mm^2/s^2)
-        self.tools = ti.Vector.field(4, ti.f32, MAX_SUCTION_TOOLS)  # x, y, z, radius (mm)
-        self.tool_sum = ti.field(ti.f32, MAX_SUCTION_TOOLS)         # mm^3 within reach
+        self.tools = ti.Vector.field(5, ti.f32, MAX_SUCTION_TOOLS)  # x, y, z, radius (mm), mm^3 to take this step
+        self.tool_units = ti.field(ti.i64, MAX_SUCTION_TOOLS)       # units within reach (integer: exact)
         self.tool_fraction = ti.field(ti.f32, MAX_SUCTION_TOOLS)
         texel_sides = np.concatenate([np.linalg.norm(ex[mask], axis=1), np.linalg.norm(ey[mask], axis=1)])
         self._min_side_mm = float(max(texel_sides.min(), 1e-6)) if len(texel_sides) else 1.0
@@ -234,13 +235,13 @@ class HeightFieldBleeding:
 
     def reset(self) -> None:
         """No blood, no stain, counters at zero."""
-        for name in ("volume", "source", "inflow", "clot", "stain", "give", "u", "link_u", "counts", "stats"):
+        for name in ("volume", "source", "inflow", "clot", "stain", "give", "u", "link_u", "counts", "sink_totals", "stats"):
             getattr(self, name).fill(0)
         self.tiles.hot.fill(-1)
         self.tiles.depth.fill(0)
         self.tiles.plan(0, 0, False)
         self.tiles.mark_all_changed()
-        self.totals = {key: 0 for key in KEYS}  # units (Python ints: exact)
+        self.sources = {"spawned": 0, "dropped_too_deep": 0}  # units (Python ints: exact); the sinks: sink_totals
         self._spawn_budget = {}
         self._disks = {}
         self._pending_speed = 0.0
@@ -255,7 +256,7 @@ class HeightFieldBleeding:
         self.reset()
         units = np.where(self.surface.mask, np.rint(np.maximum(depth_mm, 0.0) * self._area / self.unit_mm3), 0).astype(np.int64)
         self.volume.from_numpy(units.astype(np.int32))
-        self.totals["spawned"] = int(units.sum())
+        self.sources["spawned"] = int(units.sum())
         wet = np.pad(units > 0, ((0, -self.height % TILE), (0, -self.width % TILE)))
         hot = wet.reshape(self.tiles.rows, TILE, self.tiles.cols, TILE).any(axis=(1, 3))
         self.tiles.hot.from_numpy(np.where(hot.ravel(), 0, -1).astype(np.int32))
@@ -281,8 +282,8 @@ class HeightFieldBleeding:
             area = float(self._disk_area(row, col, float(radius_mm), reach))
             self._disks = {disk: area} if len(self._disks) > 64 else {**self._disks, disk: area}
         added, refused = (int(v) for v in self._disk_add(row, col, float(radius_mm), reach, whole / max(area, 1e-30)))
-        self.totals["spawned"] += added
-        self.totals["dropped_too_deep"] += refused
+        self.sources["spawned"] += added
+        self.sources["dropped_too_deep"] += refused
         self._spawn_budget[key] = budget - added - refused  # the rounding short of `whole` carries over
         return added
 
@@ -355,24 +356,13 @@ class HeightFieldBleeding:
                 self._substep(awake, sub, nu, p["pinning_depth_mm"], p["rest_speed_mm_s"], clot_keep, self._substep_count, k, n)
                 self._substep_count += 1
             tools = [tool for tool in suction if tool[2] > 0][:MAX_SUCTION_TOOLS]
-            if tools:
-                data = np.zeros((MAX_SUCTION_TOOLS, 4), np.float32)
-                for index, (position, radius, _) in enumerate(tools):
-                    data[index] = [*np.asarray(position, np.float64), radius]
+            if tools:  # one upload and one launch: the fraction each tool takes is worked out on the device
+                data = np.zeros((MAX_SUCTION_TOOLS, 5), np.float32)
+                for index, (position, radius, rate) in enumerate(tools):
+                    data[index] = [*np.asarray(position, np.float64), radius, rate * dt_s * 1000.0]
                 self.tools.from_numpy(data)
-                self.tool_sum.fill(0.0)
                 self._suction_sum(awake, len(tools))
-                within = self.tool_sum.to_numpy()
-                fraction = np.zeros(MAX_SUCTION_TOOLS, np.float32)
-                for index, (_, _, rate) in enumerate(tools):
-                    if within[index] > 0:
-                        fraction[index] = min(1.0, rate * dt_s * 1000.0 / float(within[index]))
-                self.tool_fraction.from_numpy(fraction)
             self._sinks(awake, len(tools), 1.0 - math.exp(-dt_s / p["lifetime_s"]), self.step_index, dt_s, nu)
-            counts = self.counts.to_numpy().astype(np.int64).sum(axis=0)
-            self.totals["suctioned"] += int(counts[SUCTIONED])
-            self.totals["left_surface"] += int(counts[LEFT])
-            self.totals["dried"] += int(counts[DRIED])
         self.step_index += 1
 
     @property
@@ -412,10 +402,7 @@ class HeightFieldBleeding:
     def _substep(self, n: ti.i32, dt: ti.f32, nu: ti.f32, pin: ti.f32, rest_speed: ti.f32, clot_keep: ti.f32, seed: ti.i32,
                  k: ti.i32, substeps: ti.i32):
         """Substep k of `substeps` of the n awake tiles, in one launch (its loops run one after the other): the step's
-        counters zeroed (k = 0), _momentum, _limit, _transfer."""
-        for t, q in self.counts:
-            if k == 0:
-                self.counts[t, q] = 0
+        _momentum, _limit, _transfer."""
         self._momentum(n, dt, nu, pin)
         self._limit(n, dt, rest_speed, clot_keep)
         self._transfer(n, seed, k, substeps)
@@ -617,18 +604,27 @@ class HeightFieldBleeding:
 
     @ti.kernel
     def _suction_sum(self, n: ti.i32, tools: ti.i32):
+        """The fraction of the blood within each tool's reach that it takes this step (at most all of it)."""
+        for k in range(MAX_SUCTION_TOOLS):
+            self.tool_units[k] = 0
         for i, j in ti.ndrange(n, TILE * TILE):
             t, r, c, inside = self.tiles.texel(i, j)
             if inside and self.mask[r, c] and self.volume[r, c] > 0:
                 k = self._tool_of(r, c, tools)
                 if k >= 0:
-                    self.tool_sum[k] += self.volume[r, c] * self.unit_per_area[r, c] * self.area[r, c]
+                    self.tool_units[k] += ti.cast(self.volume[r, c], ti.i64)
+        for k in range(tools):
+            within_mm3 = ti.cast(self.tool_units[k], ti.f32) * self.unit_mm3
+            self.tool_fraction[k] = 0.0
+            if within_mm3 > 0.0:
+                self.tool_fraction[k] = ti.min(1.0, self.tools[k][4] / within_mm3)
 
     @ti.kernel
     def _sinks(self, n: ti.i32, tools: ti.i32, dry_fraction: ti.f32, step: ti.i32, dt: ti.f32, nu: ti.f32):
         """Suction (fraction of the volume within a tool's reach), then drying; then for the next step: tiles holding
         blood or flow are hot, the stain, and the largest speed that sets the substeps (stats[0]): over the wet
-        texels, the larger of the flow's |u| + g_t min(dt, h^2 / 3 nu) and the waves' sqrt(g_n h)."""
+        texels, the larger of the flow's |u| + g_t min(dt, h^2 / 3 nu) and the waves' sqrt(g_n h). Last, the step's
+        counts go into sink_totals and are zeroed."""
         for i, j in ti.ndrange(n, TILE * TILE):
             t, r, c, inside = self.tiles.texel(i, j)
             if inside and self.mask[r, c]:
@@ -659,6 +655,12 @@ class HeightFieldBleeding:
                     if nu > 0.0:
                         reach = ti.min(dt, h * h / (3.0 * nu))
                     ti.atomic_max(self.stats[0], ti.max(umax + self.gt[r, c] * reach, ti.sqrt(self.gn[r, c] * h)))
+        for q in range(3):  # the step's per-tile counts into the totals, on the device (no read back per step)
+            total = ti.cast(0, ti.i64)
+            for t in range(self.counts.shape[0]):
+                total += self.counts[t, q]
+                self.counts[t, q] = 0
+            self.sink_totals[q] += total
 
     # --- outputs ------------------------------------------------------------------------------
     @ti.kernel
@@ -691,11 +693,13 @@ class HeightFieldBleeding:
     def accounting(self) -> dict:
         """ml: spawned = on_surface + suctioned + left_surface + dried (exact in units of unit_mm3)."""
         on_surface = int(self.volume.to_numpy().astype(np.int64).sum() + self.source.to_numpy().astype(np.int64).sum())
+        sinks = self.sink_totals.to_numpy()
+        totals = {**self.sources, "suctioned": int(sinks[SUCTIONED]), "left_surface": int(sinks[LEFT]), "dried": int(sinks[DRIED])}
         scale = self.unit_mm3 / 1000.0
-        result = {key: value * scale for key, value in self.totals.items()}
+        result = {key: totals[key] * scale for key in KEYS}
         result["on_surface"] = on_surface * scale
         result["volume_ml"] = result["on_surface"]
-        result["units"] = {**self.totals, "on_surface": on_surface}
+        result["units"] = {**{key: totals[key] for key in KEYS}, "on_surface": on_surface}
         return result
 
     def metrics(self) -> dict:
@@ -709,7 +713,7 @@ class HeightFieldBleeding:
 
     def take_warning(self) -> str | None:
         """Once: why blood was lost (a texel full to CAPACITY_MM refused new blood), else None."""
-        if self._warned or not self.totals["dropped_too_deep"]:
+        if self._warned or not self.sources["dropped_too_deep"]:
             return None
         self._warned = True
         return (f"blood deeper than {CAPACITY_MM:g} mm in a texel: new blood there is dropped and counted in metrics.json "

@@ -204,14 +204,15 @@ def test_same_scene_twice_gives_identical_state():
         assert np.array_equal(states[0][key], states[1][key]), key
 
 
-@pytest.mark.parametrize("method", ["particles", "height_field"])
-def test_identical_state_with_one_and_two_threads(tmp_path, method):
+@pytest.mark.parametrize("method, scene, duration", [("particles", "bleeding.yaml", "0.5"), ("height_field", "bleeding.yaml", "0.5"),
+                                                     ("height_field", "hemostasis.yaml", "2.6")])  # the last: with suction
+def test_identical_state_with_one_and_two_threads(tmp_path, method, scene, duration):
     outputs = []
     for threads in ("1", "2"):
         out = tmp_path / f"threads{threads}"
         env = {**__import__("os").environ, "TISSUE_LAB_THREADS": threads}
-        result = subprocess.run([sys.executable, "-m", "lab", "run", str(REPO_ROOT / "scenes" / "bleeding.yaml"), "--out", str(out),
-                                 "--duration", "0.5", "--set", "texture_size=128", "--set", f"bleeding.method={method}",
+        result = subprocess.run([sys.executable, "-m", "lab", "run", str(REPO_ROOT / "scenes" / scene), "--out", str(out),
+                                 "--duration", duration, "--set", "texture_size=128", "--set", f"bleeding.method={method}",
                                  "--arch", "cpu", "--quiet"],
                                 capture_output=True, text=True, cwd=REPO_ROOT, env=env)
         assert result.returncode == 0, result.stderr

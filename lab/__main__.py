@@ -40,7 +40,9 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--quiet", action="store_true", help="no progress bar")
     bench = commands.add_parser("bench", help="measure speed next to error and write DIR/report.md and DIR/results.json")
     bench.add_argument("--quick", action="store_true", help="fewer sizes and steps (under 3 minutes on 2 cores; the full run takes under 30)")
-    bench.add_argument("--only", nargs="+", metavar="SECTION", help="run only these sections: heat heat_reference heat_layers damage bleeding dambreak bleeding_methods scenes")
+    from lab.bench import SECTIONS
+
+    bench.add_argument("--only", nargs="+", metavar="SECTION", help="run only these sections: " + " ".join(SECTIONS))
     bench.add_argument("--out", required=True, help="output folder")
     bench.add_argument("--arch", choices=ARCH_CHOICES, default="auto", help="Taichi device")
     return parser

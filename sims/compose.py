@@ -171,7 +171,7 @@ class Composer:
             self._plain(tiles)
         if kinds & NORMAL:
             self._normals(tiles, self.texel_mm)
-        written = tiles.written()
+        written = tiles.written
         if len(written):
             self._copy_out(tiles, written)
         return self.shown[0]

@@ -51,7 +51,7 @@ def grow(flags: np.ndarray, rows: int, cols: int) -> np.ndarray:
 
 @ti.data_oriented
 class DisplayTiles:
-    """The display grid's tiles and what each reads (module docstring); `flags` and `listed` after select()."""
+    """The display grid's tiles and what each reads (module docstring); `flags`, `written` and `listed` after select()."""
 
     def __init__(self, fill_index: np.ndarray, heat=None, film=None, blood_reach: int = 0, tile: int = DISPLAY_TILE):
         """fill_index: (H, W) flat display index of each texel's fill source. heat, film: (taps, grid shape, grid
@@ -68,10 +68,10 @@ class DisplayTiles:
         # display tile -> display tiles whose texels' fill sources lie in it (the normal map reads around the source)
         self.fill_reads = _reads(None, fill_index, fill_index.shape, tile, tile)
         self.flags = ti.field(ti.i32, self.tiles)
-        self.listed = 0                 # tiles flagged WRITE or NORMAL by the last select()
+        self.written = np.zeros(0, np.int32)  # (N,) row-major indices of the tiles the last select() flagged WRITE or NORMAL
+        self.listed = 0                 # how many: len(written)
         self.kinds = 0                  # the OR of every tile's flags at the last select()
         self._changed = np.zeros(self.grid, bool)
-        self._last_written = np.zeros(self.tiles, bool)
         self._fresh = True              # nothing composed yet: the first select() flags every tile
 
     def select(self, changed_heat: np.ndarray | None, changed_film: np.ndarray | None) -> int:
@@ -105,18 +105,14 @@ class DisplayTiles:
             self.flags.from_numpy(flags)
         written = (flags & (WRITE | NORMAL)) != 0
         self._changed |= written.reshape(self.grid)
-        self._last_written = written
-        self.listed = int(written.sum())
+        self.written = np.flatnonzero(written).astype(np.int32)
+        self.listed = len(self.written)
         return self.listed
 
     def take_changed(self) -> np.ndarray:
         """(rows, cols) bool over the tiles: those written since the last call (DISPLAY_TILE texels a side)."""
         changed, self._changed = self._changed, np.zeros(self.grid, bool)
         return changed
-
-    def written(self) -> np.ndarray:
-        """(N,) int32 row-major indices of the tiles the last select() flagged WRITE or NORMAL."""
-        return np.flatnonzero(self._last_written).astype(np.int32)
 
     @ti.func
     def flagged(self, r, c, kind: ti.template()):

@@ -26,13 +26,13 @@ import viser
 import viser.transforms as vtf
 
 from lab.section_view import section_image
-from lab.session import MAX_BLEED_POINTS, QUALITY, SPEED_RANGE, LabSession
+from lab.session import MAX_BLEED_POINTS, QUALITY, SPEED_RANGE, TEXTURE_INTERVAL_S, LabSession
 from lab.stream import TextureStream
 from sims import params
 from sims.instruments import local_frame
 from sims.scene import Refused, finite_vector
 
-FRAME_INTERVAL_S = 1.0 / 30.0       # texture updates at most this often
+VIEW_INTERVAL_S = 1.0 / 30.0        # tool poses and markers sent at most this often
 MAX_WAIT_S = 0.02                   # the simulation thread looks at the session at least this often
 STATS_INTERVAL_S = 0.5
 PLOT_SECONDS = 60.0
@@ -537,7 +537,7 @@ class LabApp:
         return False
 
     def _run(self, until, deadline) -> bool:
-        last_frame = last_stats = last_check = time.perf_counter()
+        last_view = last_texture = last_stats = last_check = time.perf_counter()
         steps = updates = sent = 0
         while not self.stop_event.is_set():
             now = time.perf_counter()
@@ -555,18 +555,21 @@ class LabApp:
             if self.session.builds != self.shown_builds:
                 self._show_scene()
             now = time.perf_counter()
-            if not taken:  # wait for the next step or frame, whichever is due first (at most MAX_WAIT_S)
-                wait = min(self.session.seconds_to_next_step(), last_frame + FRAME_INTERVAL_S - now, MAX_WAIT_S)
+            if not taken:  # wait for the next step, view or texture update, whichever is due first (at most MAX_WAIT_S)
+                wait = min(self.session.seconds_to_next_step(), last_view + VIEW_INTERVAL_S - now,
+                           last_texture + TEXTURE_INTERVAL_S - now, MAX_WAIT_S)
                 if wait > 0.0:
                     time.sleep(wait)
                     now = time.perf_counter()
-            if now - last_frame >= FRAME_INTERVAL_S:
+            if now - last_view >= VIEW_INTERVAL_S:
                 self._sync_view()
+                last_view = now
+            if now - last_texture >= TEXTURE_INTERVAL_S:
                 if self.session.broken is None:  # a non-finite field is named in the stats, not drawn
                     result = self._stream_look()
                     updates += result["tiles_sent"] > 0  # updates that sent something
                     sent += result["bytes"]
-                last_frame = now
+                last_texture = now
             if now - last_stats >= STATS_INTERVAL_S:
                 span = now - last_stats
                 self.stats = {"steps_per_s": steps / span, "updates_per_s": updates / span, "bytes_per_s": sent / span}

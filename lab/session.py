@@ -35,6 +35,8 @@ MAX_BLEED_POINTS = 16     # bleed points in a scene at most (the scene's and the
 FINITE_CHECK_EVERY = 25   # steps between checks of the fields for NaN and inf
 MAX_BACKLOG_S = 0.5       # the simulation drops a backlog larger than this rather than spiral
 SPEED_RANGE = (0.1, 4.0)  # x real time
+TEXTURE_INTERVAL_S = 0.1  # a front end composes and streams the look at most this often: the stream publishes about
+                          # 21 tiles a second at most (its rate limit), so composing more often would repeat the work
 REST_DEPTH_MM = 0.2       # a tool rested on the tissue presses its tip this far in
 QUALITY = {  # name: scene overrides (texture texels; fluid substeps of either bleeding method, the one in use applies)
     "scene file": {},

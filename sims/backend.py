@@ -67,3 +67,11 @@ def shutdown() -> None:
 
         ti.reset()
         _started_arch = None
+
+
+def restart() -> None:
+    """shutdown(), then a fresh runtime on the device the last one ran on (a CPU stays a CPU, a GPU a GPU)."""
+    arch = _started_arch
+    shutdown()
+    if arch is not None:
+        init("cpu" if arch in ("x64", "arm64") else "gpu")

@@ -18,7 +18,6 @@ import math
 import numpy as np
 import taichi as ti
 
-from sims.display_tiles import grow
 from sims.resample import GridReader
 
 SPLAT_SCALE = 1024  # fixed-point units of one particle in the splat grid (integer atomics: deterministic)
@@ -155,14 +154,14 @@ class BloodFilm(GridReader):
                     self.touched[r // self.tile, c // self.tile] = 1
 
     def take_touched(self) -> np.ndarray:
-        """(tile rows, tile columns) bool: the film tiles whose trail or stain may have changed since the last call,
-        with their neighbours (whose near flags may have changed); near is brought up to date on them. When none was touched
-        and the method's last step moved no blood, every trail equals the film or is 0: the film is settled, and
-        advance() does nothing until the method moves blood again."""
+        """(tile rows, tile columns) bool: the film tiles whose trail or stain may have changed since the last call;
+        near is brought up to date on them and their neighbours. The neighbours are not returned: near only spares the
+        look work where every trail it could read is 0, so a change of near alone changes no texel of the look. When
+        none was touched and the method's last step moved no blood, every trail equals the film or is 0: the film is
+        settled, and advance() does nothing until the method moves blood again."""
         touched = self.touched.to_numpy().astype(bool)
         self._settled = not touched.any() and not self.bleeding.moved  # nothing decays and nothing comes: steady
         if touched.any():
-            touched = grow(touched, 1, 1)
             self._take_near()
             self.touched.fill(0)
         return touched

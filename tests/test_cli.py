@@ -178,6 +178,23 @@ def test_arch_auto_runs_without_a_gpu_and_gpu_says_why(tmp_path):
         assert gpu.returncode == 2 and gpu.stderr.strip().splitlines() == [f"error: {path}: --arch: --arch gpu: no CUDA or Vulkan device found (use --arch auto or cpu)"]
 
 
+def test_a_restarted_runtime_stays_on_its_device_and_starts_empty():
+    """backend.restart() (the benches between scenes): the same device again, and fields made before it are gone."""
+    import taichi as ti
+
+    from sims import backend
+
+    arch = backend.init("cpu")
+    for _ in range(3):  # each field made after a launch is one more SNode tree of the runtime
+        ti.field(ti.f32, 4).fill(1.0)
+    trees = ti.lang.impl.get_runtime().prog.get_snode_tree_size()
+    backend.restart()
+    assert backend.started_arch() == arch
+    after = ti.field(ti.f32, 4)
+    after.fill(2.0)
+    assert after.to_numpy().tolist() == [2.0] * 4 and ti.lang.impl.get_runtime().prog.get_snode_tree_size() < trees
+
+
 def test_non_finite_state_stops_the_run_naming_field_and_step(tmp_path, monkeypatch, capsys):
     from sims.scene import Scene
 

@@ -6,7 +6,10 @@ import time
 
 import numpy as np
 
+from lab.session import TEXTURE_INTERVAL_S
+
 BODY_C = 37.0
+TEXTURE_UPDATES_PER_S = round(1.0 / TEXTURE_INTERVAL_S)  # display updates per (simulated) second, as the lab makes them
 
 
 def plane_mesh(width_mm: float, height_mm: float, u_scale: float = 1.0, vertical: bool = False, cells: int = 8):

@@ -3,10 +3,10 @@ scene is seen to pay only for the models it names; and how long a trainer waits 
 import socket
 import time
 
-from lab.bench.common import lab_stream, pyplot, save, stream_frame
+from lab.bench.common import TEXTURE_UPDATES_PER_S, lab_stream, pyplot, save, stream_frame
+from sims import backend
 from sims.config import REPO_ROOT
 
-FRAMES_PER_SIMULATED_S = 10  # display updates: the browser lab sends about 10 per second
 MODELS = ("cautery", "bleeding", "compose", "encoding")
 RUNS = 3  # each scene's cost is its fastest of this many runs: a burst of other load on the machine does not count
 PRESETS = (("default.yaml", "accurate"),)  # (scene, lab quality preset) also measured under the preset (full runs)
@@ -33,7 +33,7 @@ def scene_cost(path, seconds: float, server, preset: str = "scene file") -> dict
     stream_frame(scene, stream)
     scene.profile = True
     steps = max(1, int(round(seconds / scene.time_step_s)))
-    every = max(1, int(round(1.0 / (FRAMES_PER_SIMULATED_S * scene.time_step_s))))
+    every = max(1, int(round(1.0 / (TEXTURE_UPDATES_PER_S * scene.time_step_s))))
     sent_bytes, updates, encoding, maps_s = 0, 0, 0.0, 0.0
     for step in range(1, steps + 1):
         scene.step()
@@ -46,6 +46,7 @@ def scene_cost(path, seconds: float, server, preset: str = "scene file") -> dict
     cost["compose"] += 1000.0 * maps_s / simulated
     cost["encoding"] = 1000.0 * encoding / simulated
     metrics = scene.metrics()
+    backend.restart()  # a fresh Taichi runtime on the same device for the next run: a section's scenes outgrow one
     return {
         "scene": path.name if preset == "scene file" else f"{path.name} ({preset})",
         "models": list(scene.models),
@@ -94,7 +95,7 @@ def run(quick: bool) -> dict:
                 for path, preset in runs]
     finally:
         server.stop()
-    return {"frames_per_simulated_s": FRAMES_PER_SIMULATED_S, "scenes": rows}
+    return {"frames_per_simulated_s": TEXTURE_UPDATES_PER_S, "scenes": rows}
 
 
 def render(results: dict) -> list[str]:

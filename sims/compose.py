@@ -107,7 +107,8 @@ def blood_layer(ground, thickness_mm, saturation):
     s = 0.75 * ti.Vector(BLOOD_MU_S_REDUCED)
     a = 1.0 + 2.0 * mu_a / s
     b = ti.sqrt(a * a - 1.0)
-    t = ti.tanh(b * s * thickness_mm)
+    e = ti.exp(-2.0 * b * s * thickness_mm)
+    t = (1.0 - e) / (1.0 + e)  # tanh(b s h) for h >= 0, with one exp per channel
     return (t * (1.0 - ground * a) + ground * b) / (t * (a - ground) + b)
 
 
@@ -278,7 +279,7 @@ class Composer:
                 self._write(r, c, self.color[sr, sc], self.tissue[sr, sc][0], self.tissue[sr, sc][1])
 
     @ti.kernel
-    def _blood_depth(self, film: ti.template(), tiles: ti.template(), radius: ti.i32):
+    def _blood_depth(self, film: ti.template(), tiles: ti.template(), radius: ti.template()):
         """blood = the film's trail at each texel's fill source, smoothed by a tent of `radius` texels (half a texel of
         the film's grid): read bilinearly alone, a coarser film is linear within each of its cells, so its contours
         (the wet edge) are cell-shaped and its slope (the lighting) changes in facets; the tent makes it smooth. Each
@@ -292,15 +293,15 @@ class Composer:
             if tiles.flagged(r, c, BLOOD_ROWS):
                 total = 0.0
                 if film.is_near(r, c):
-                    for k in range(-radius, radius + 1):
-                        total += self.blood_raw[r, ti.min(ti.max(c + k, 0), width - 1)] * (radius + 1 - ti.abs(k))
+                    for k in ti.static(range(-radius, radius + 1)):  # unrolled: the radius is fixed per scene
+                        total += self.blood_raw[r, ti.min(ti.max(c + k, 0), width - 1)] * (radius + 1 - abs(k))
                 self.blood_tmp[r, c] = total / ((radius + 1) * (radius + 1))
         for r, c in self.blood:
             if tiles.flagged(r, c, BLOOD_COLUMNS):
                 total = 0.0
                 if film.is_near(r, c):
-                    for k in range(-radius, radius + 1):
-                        total += self.blood_tmp[ti.min(ti.max(r + k, 0), height - 1), c] * (radius + 1 - ti.abs(k))
+                    for k in ti.static(range(-radius, radius + 1)):
+                        total += self.blood_tmp[ti.min(ti.max(r + k, 0), height - 1), c] * (radius + 1 - abs(k))
                 self.blood[r, c] = total / ((radius + 1) * (radius + 1))
 
     @ti.kernel
@@ -315,14 +316,17 @@ class Composer:
             if h <= 0.0 and stain_mm <= 0.0:  # never wet: the tissue as it is, without the cost of the layer
                 self._write(r, c, self.color[sr, sc], tissue[0], tissue[1])
             else:
-                clot = film.clot_at(sr, sc)
                 stain = 1.0 - ti.exp(-stain_mm / STAIN_MM)
-                ground = self.color_linear[sr, sc] * (1.0 - stain * (1.0 - ti.Vector(STAIN_TRANSMITTANCE)))
-                linear = blood_layer(ground, h, FRESH_SATURATION + (CLOT_SATURATION - FRESH_SATURATION) * clot)
-                wet = 1.0 - ti.exp(-h / WET_MM)
-                blood_roughness = BLOOD_ROUGHNESS[0] + (BLOOD_ROUGHNESS[1] - BLOOD_ROUGHNESS[0]) * clot
-                level = _smoothstep(0.0, POOL_LEVEL_MM, h)
-                self._write_surface(r, c, tissue[0] * (1.0 - level) + h, tissue[1] * (1.0 - wet) + blood_roughness * wet)
+                linear = self.color_linear[sr, sc] * (1.0 - stain * (1.0 - ti.Vector(STAIN_TRANSMITTANCE)))
+                if h > 0.0:  # under blood (a dry stain is the ground as it is: a layer of 0 mm changes nothing)
+                    clot = film.clot_at(sr, sc)
+                    linear = blood_layer(linear, h, FRESH_SATURATION + (CLOT_SATURATION - FRESH_SATURATION) * clot)
+                    wet = 1.0 - ti.exp(-h / WET_MM)
+                    blood_roughness = BLOOD_ROUGHNESS[0] + (BLOOD_ROUGHNESS[1] - BLOOD_ROUGHNESS[0]) * clot
+                    level = _smoothstep(0.0, POOL_LEVEL_MM, h)
+                    self._write_surface(r, c, tissue[0] * (1.0 - level) + h, tissue[1] * (1.0 - wet) + blood_roughness * wet)
+                else:
+                    self._write_surface(r, c, tissue[0], tissue[1])
                 for k in ti.static(range(3)):
                     index = ti.cast(ti.min(ti.max(linear[k], 0.0), 1.0) * (ENCODE_STEPS - 1) + 0.5, ti.i32)
                     self.rgb[r, c][k] = self.encode[index]

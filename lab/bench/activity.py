@@ -66,14 +66,15 @@ def case_cost(size: int, case: str, seconds: float, server) -> dict:
             frame = stream_frame(scene, stream)
             maps_s, encoding, sent, updates = maps_s + frame[0], encoding + frame[1], sent + frame[2], updates + 1
     stream.close()
-    backend.restart()  # a fresh Taichi runtime on the same device for the next run: a section's scenes outgrow one
     simulated = (steps - warm) * scene.time_step_s
     cost = {stage: 1000.0 * scene.model_seconds.get(stage, 0.0) / simulated for stage in STAGES[:3]}
     cost["compose"] += 1000.0 * maps_s / simulated
     cost["encoding"] = 1000.0 * encoding / simulated
-    return {"texture_size": size, "case": case, "simulated_s": simulated, "ms_per_simulated_s": cost,
-            "total_ms_per_simulated_s": sum(cost.values()), "kb_per_update": sent / 1000.0 / max(updates, 1),
-            "hot_tiles_awake": int(scene.cautery.tiles.awake), "blood_ml": float(scene.metrics()["bleeding"].get("volume_ml", 0.0))}
+    row = {"texture_size": size, "case": case, "simulated_s": simulated, "ms_per_simulated_s": cost,
+           "total_ms_per_simulated_s": sum(cost.values()), "kb_per_update": sent / 1000.0 / max(updates, 1),
+           "hot_tiles_awake": int(scene.cautery.tiles.awake), "blood_ml": float(scene.metrics()["bleeding"].get("volume_ml", 0.0))}
+    backend.restart()  # a fresh Taichi runtime on the same device for the next run: a section's scenes outgrow one
+    return row
 
 
 def idle_lab_process(seconds: float, settle_s: float = 20.0) -> dict:

@@ -5,6 +5,7 @@ import os
 from pathlib import Path
 
 ARCH_CHOICES = ("auto", "cpu", "gpu")
+CPU_ARCHS = ("x64", "arm64")  # Taichi's names of the CPU backends
 _started_arch: str | None = None
 
 
@@ -48,7 +49,7 @@ def init(arch: str = "auto") -> str:
         **extra,
     )
     _started_arch = ti.lang.impl.current_cfg().arch.name
-    if arch == "gpu" and _started_arch in ("x64", "arm64"):
+    if arch == "gpu" and _started_arch in CPU_ARCHS:
         raise ArchUnavailable("--arch gpu: no CUDA or Vulkan device found (use --arch auto or cpu)")
     return _started_arch
 
@@ -59,7 +60,7 @@ def row_span(width: int) -> int:
     times cheaper per texel than a loop over texels for a few loads and a square root (the normal map), though 1.1-1.3
     times dearer for heavy texels (the tissue's stages, the blood layer); one texel on a GPU, where every texel wants
     its own thread."""
-    return width if _started_arch in (None, "x64", "arm64") else 1
+    return width if _started_arch is None or _started_arch in CPU_ARCHS else 1
 
 
 def started_arch() -> str | None:
@@ -83,4 +84,4 @@ def restart() -> None:
     arch = _started_arch
     shutdown()
     if arch is not None:
-        init("cpu" if arch in ("x64", "arm64") else "gpu")
+        init("cpu" if arch in CPU_ARCHS else "gpu")

@@ -42,7 +42,7 @@ def _reads(taps: np.ndarray | None, fill_index: np.ndarray, source_shape, source
     return matrix
 
 
-def grow(flags: np.ndarray, rows: int, cols: int) -> np.ndarray:
+def _grow(flags: np.ndarray, rows: int, cols: int) -> np.ndarray:
     """(R, C) bool flags grown by `rows` tiles up and down and `cols` tiles left and right."""
     padded = np.pad(flags, ((rows, rows), (cols, cols)))
     return np.any([padded[rows + dr:rows + dr + flags.shape[0], cols + dc:cols + dc + flags.shape[1]]
@@ -69,7 +69,6 @@ class DisplayTiles:
         self.fill_reads = _reads(None, fill_index, fill_index.shape, tile, tile)
         self.flags = ti.field(ti.i32, self.tiles)
         self.written = np.zeros(0, np.int32)  # (N,) row-major indices of the tiles the last select() flagged WRITE or NORMAL
-        self.listed = 0                 # how many: len(written)
         self.kinds = 0                  # the OR of every tile's flags at the last select()
         self._changed = np.zeros(self.grid, bool)
         self._fresh = True              # nothing composed yet: the first select() flags every tile
@@ -87,10 +86,10 @@ class DisplayTiles:
         none = np.zeros(self.tiles, bool)
         tissue = (self.heat_reads.T @ np.ravel(changed_heat).astype(np.int32)) > 0 if heat_changed else none
         blood = (self.film_reads.T @ np.ravel(changed_film).astype(np.int32)) > 0 if film_changed else none
-        rows = grow(blood.reshape(self.grid), 0, self.blood_reach)  # the pass along rows reads left and right
-        columns = grow(rows, self.blood_reach, 0)                   # the pass along columns up and down
+        rows = _grow(blood.reshape(self.grid), 0, self.blood_reach)  # the pass along rows reads left and right
+        columns = _grow(rows, self.blood_reach, 0)                   # the pass along columns up and down
         write = tissue.reshape(self.grid) | columns
-        normal = (self.fill_reads.T @ grow(write, 1, 1).ravel().astype(np.int32)) > 0
+        normal = (self.fill_reads.T @ _grow(write, 1, 1).ravel().astype(np.int32)) > 0
         flags = (TISSUE * tissue + BLOOD_SAMPLE * blood + BLOOD_ROWS * rows.ravel() + BLOOD_COLUMNS * columns.ravel()
                  + WRITE * write.ravel() + NORMAL * normal).astype(np.int32)
         return self._set(flags)
@@ -106,8 +105,12 @@ class DisplayTiles:
         written = (flags & (WRITE | NORMAL)) != 0
         self._changed |= written.reshape(self.grid)
         self.written = np.flatnonzero(written).astype(np.int32)
-        self.listed = len(self.written)
         return self.listed
+
+    @property
+    def listed(self) -> int:
+        """How many tiles the last select() flagged WRITE or NORMAL."""
+        return len(self.written)
 
     def take_changed(self) -> np.ndarray:
         """(rows, cols) bool over the tiles: those written since the last call (DISPLAY_TILE texels a side)."""

@@ -694,12 +694,13 @@ class HeightFieldBleeding:
         """ml: spawned = on_surface + suctioned + left_surface + dried (exact in units of unit_mm3)."""
         on_surface = int(self.volume.to_numpy().astype(np.int64).sum() + self.source.to_numpy().astype(np.int64).sum())
         sinks = self.sink_totals.to_numpy()
-        totals = {**self.sources, "suctioned": int(sinks[SUCTIONED]), "left_surface": int(sinks[LEFT]), "dried": int(sinks[DRIED])}
+        found = {**self.sources, "suctioned": int(sinks[SUCTIONED]), "left_surface": int(sinks[LEFT]), "dried": int(sinks[DRIED])}
+        totals = {key: found[key] for key in KEYS}
         scale = self.unit_mm3 / 1000.0
-        result = {key: totals[key] * scale for key in KEYS}
+        result = {key: value * scale for key, value in totals.items()}
         result["on_surface"] = on_surface * scale
         result["volume_ml"] = result["on_surface"]
-        result["units"] = {**{key: totals[key] for key in KEYS}, "on_surface": on_surface}
+        result["units"] = {**totals, "on_surface": on_surface}
         return result
 
     def metrics(self) -> dict:

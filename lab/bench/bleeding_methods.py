@@ -564,6 +564,7 @@ def render(results: dict) -> list[str]:
 def _growth_notes(growth: list) -> list[str]:
     """Particle runs whose blood piles up at the bleed point (splat far above the film), against the height field."""
     from sims import params
+    from sims.sph import MAX_CANDIDATES
 
     film = params.BLEEDING["film_thickness_mm"].default
     field = [r for r in growth if r["method"] == "height_field"]
@@ -574,8 +575,8 @@ def _growth_notes(growth: list) -> list[str]:
             kept = ", ".join(f"{r['points'][-1]['on_surface_ml']:.2f} ml ({r['resolution']})" for r in field)
             notes.append(
                 f"- Particles at {run_['resolution']}: the blood piles up at the bleed point (splat up to {last['max_thickness_mm']:.0f} mm "
-                f"against a {film:g} mm film after {last['mark_ml']:g} ml): the density sum reads at most MAX_NEIGHBOURS = 48 "
-                "neighbours (about 30 at rest for a radius of 3 spacings), so a clump does not feel its own pressure; "
+                f"against a {film:g} mm film after {last['mark_ml']:g} ml): the density sum reads at most MAX_CANDIDATES = {MAX_CANDIDATES} "
+                "candidates (about 70 at rest for a radius of 3 spacings), so a clump does not feel all of its own pressure; "
                 f"{last['on_surface_ml']:.2f} ml stays on the patch ({last['particles']:,} particles) where the height field keeps {kept}.")
     return notes
 

@@ -114,17 +114,18 @@ class Bleeding:
         self.cell_count = ti.field(ti.i32, keys)
         self.cell_start = ti.field(ti.i32, keys + 1)
         capacity = self.pool_size = max(self.capacity, 1) + LANES  # a run's last vector may read past the pool
-        self.pos = ti.Vector.field(2, ti.f32, capacity)
+        soa = ti.Layout.SOA  # the pair loops read these at LANES consecutive candidates: one load per component
+        self.pos = ti.Vector.field(2, ti.f32, capacity, layout=soa)
         self.pos_prev = ti.Vector.field(2, ti.f32, capacity)
         self.pos_new = ti.Vector.field(2, ti.f32, capacity)
-        self.vel = ti.Vector.field(2, ti.f32, capacity)
+        self.vel = ti.Vector.field(2, ti.f32, capacity, layout=soa)
         self.vel_new = ti.Vector.field(2, ti.f32, capacity)
         self.back_v2 = ti.Vector.field(2, ti.f32, (2, capacity))  # sorting buffers (with pos_new, vel_new)
         self.back_f3 = ti.Vector.field(3, ti.f32, capacity)
         self.back_i2 = ti.Vector.field(2, ti.i32, capacity)
-        self.metric = ti.Vector.field(3, ti.f32, capacity)     # metric at the particle's texel
+        self.metric = ti.Vector.field(3, ti.f32, capacity, layout=soa)  # metric at the particle's texel
         self.density = ti.Vector.field(2, ti.f32, capacity)    # rho, rho_near
-        self.pressure = ti.Vector.field(2, ti.f32, capacity)   # P, P_near
+        self.pressure = ti.Vector.field(2, ti.f32, capacity, layout=soa)  # P, P_near
         self.drag = ti.field(ti.f32, capacity)                 # film drag rate (1/s) of this substep
         self.age = ti.field(ti.f32, capacity)
         self.clot = ti.field(ti.f32, capacity)

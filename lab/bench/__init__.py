@@ -3,6 +3,7 @@ DIR/report.md, DIR/results.json and PNG plots. One module per section, each with
 render(results) -> markdown lines and optionally plot(results, out_dir) -> PNG file names."""
 import importlib
 import json
+import os
 import time
 from pathlib import Path
 
@@ -25,11 +26,14 @@ def run(out_dir, quick: bool = False, arch: str = "auto", sections=SECTIONS) -> 
     results = {"device": device_description(device), "quick": quick, "sections": list(sections)}
     started = time.perf_counter()
     bar = tqdm(sections, desc="bench", unit="section")
-    for name in bar:
+    for index, name in enumerate(bar):
         bar.set_postfix_str(name)
+        if index:
+            backend.restart()  # each section on a fresh runtime: one process's sections outgrow its 512 SNode trees
         module = importlib.import_module(f"lab.bench.{name}")
-        section_start, ticks = time.perf_counter(), cpu_ticks()
+        section_start, ticks, load = time.perf_counter(), cpu_ticks(), os.getloadavg()[0]
         results[name] = module.run(quick)
+        results[name]["load_before"] = load
         results[name]["wall_s"] = time.perf_counter() - section_start
         results[name]["cpu_stolen_share"] = stolen_share(ticks, cpu_ticks())
         results[name]["plots"] = module.plot(results[name], out)
@@ -52,7 +56,9 @@ def render(results: dict) -> str:
     for name in results["sections"]:
         module = importlib.import_module(f"lab.bench.{name}")
         lines += module.render(results[name])
-        stolen = results[name].get("cpu_stolen_share")
+        stolen, load = results[name].get("cpu_stolen_share"), results[name].get("load_before")
+        if load is not None:  # other work on the machine when the section started (1-minute load average)
+            lines += ["", f"Machine load before this section: {load:.2f} (1-minute load average; 1.0 is one core busy)."]
         if stolen is not None:  # a virtual machine's CPUs lent to other guests: wall times grow by about as much
             lines += ["", f"Machine load during this section: {100 * stolen:.0f} % of the CPU time went to other guests of the host (steal)."]
         lines += [f"![{plot}]({plot})" for plot in results[name].get("plots", [])]

@@ -381,16 +381,14 @@ class Bleeding:
                 self.cell_start[0] = 0
             else:
                 self.cell_start[c] = self.cell_start[c - 1] + self.cell_count[c - 1]
-                self.cell_count[c - 1] = 0
         ti.loop_config(serialize=True)
-        for i in range(n):
+        for t in range(n):  # the last particle first, into its key's last free slot: stable, and the counts end at 0
+            i = n - 1 - t
             if i < self.alive_count[None]:
                 key = self.cell[i]
+                self.cell_count[key] -= 1
                 self.sorted[self.cell_start[key] + self.cell_count[key]] = i
-                self.cell_count[key] += 1
-        for c in range(cells + 3):
-            self.cell_count[c] = 0
-        for fate in range(SUCTIONED, EXPIRED + 1):
+        for fate in ti.static(range(SUCTIONED, EXPIRED + 1)):  # unrolled: one serial task with the count below
             self.counters[fate] += self.cell_start[cells + fate] - self.cell_start[cells + fate - 1]
         self.alive_count[None] = self.cell_start[cells]
         for s in range(n):

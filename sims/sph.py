@@ -16,8 +16,10 @@ candidates are three contiguous runs of the pool (the rows of its 3 x (2 CELL_CO
 relaxation and viscosity passes each walk those runs without a branch (a pair out of range weighs exactly 0), in whole
 vectors of LANES candidates, so a CPU computes LANES pairs per instruction. Every kernel gathers from neighbours and
 writes only its own particle; the sort's prefix sum and scatter run serially (a few per cent of the step on a CPU), so
-results are bitwise identical across runs and thread counts. Kernels loop over the pool's count at the start of the
-step and skip past the device's alive_count: the host reads the count back once per step. Work per particle is capped
+results are bitwise identical across runs and thread counts. A substep's passes are one launch (_passes): on a CPU
+a launch from Python costs 25-45 us, a third of a 1,000-particle step when each pass was its own. Kernels loop over
+the pool's count at the start of the step and skip past the device's alive_count: the host reads the count back once
+per step. Work per particle is capped
 (MAX_CANDIDATES examined, the first in cell order), so dense clumps cost bounded time.
 
 Accounting: spawned = alive + suctioned + left_surface + expired, exactly, at every step.
@@ -49,6 +51,9 @@ MAX_SUCTION_TOOLS = 8
 MAX_RELAX_FRACTION = 0.5    # largest relaxation displacement per substep, in interaction radii
 WALL_MARGIN = 1e-3          # walls keep particles this far (texels) inside the border of a valid texel
 KEYS = ("spawned", "suctioned", "left_surface", "expired", "dropped_pool_full")
+PREDICT, SORT, DENSITY, RELAX, FINISH, VISCOSITY = (1 << bit for bit in range(6))  # the passes of a substep
+SUBSTEP = PREDICT | SORT | DENSITY | RELAX | FINISH | VISCOSITY
+PASS_NAMES = {PREDICT: "predict", SORT: "sort", DENSITY: "density", RELAX: "relax", FINISH: "finish", VISCOSITY: "viscosity"}
 
 
 def lattice_density(spacing_mm: float, radius_mm: float) -> float:
@@ -83,6 +88,7 @@ class Bleeding:
     def __init__(self, surface, params: dict, gravity_mm_s2, capacity: int, walls: bool = False):
         self.surface, self.params = surface, params
         self.walls = bool(walls)
+        self.separate_passes = False  # True: one launch per pass (the bench's per-pass profile), not one per substep
         height, width = surface.mask.shape
         self.height, self.width, self.capacity = height, width, int(capacity)
         ex, ey = surface.tangent_u, -surface.tangent_v
@@ -259,17 +265,35 @@ class Bleeding:
             sub = dt_s / substeps
             nu = p["blood_viscosity_mpa_s"] * 1e-3 / p["blood_density_kg_m3"] * 1e6  # mm^2/s
             rest = self.rest_density
+            values = (n, sub, size[0], size[1], h, nu, p["film_thickness_mm"], rest, p["pinning_density"] * rest,
+                      p["lifetime_s"], p["stiffness_mm_s2"], p["near_stiffness_mm_s2"], p["inertia"], p["max_speed_mm_s"],
+                      p["clotting_rate_1_s"], p["rest_speed_mm_s"], p["viscosity_sigma_1_s"], p["viscosity_beta_s_mm"])
             for _ in range(substeps):
-                self._predict(n, sub, nu, p["film_thickness_mm"], rest, p["pinning_density"] * rest, p["lifetime_s"])
-                self._sort(n, size[0], size[1])
-                self._density_pass(n, h, rest, p["stiffness_mm_s2"], p["near_stiffness_mm_s2"])
-                self._relax(n, sub, h)
-                self._finish(n, sub, p["inertia"], p["max_speed_mm_s"], p["clotting_rate_1_s"], p["rest_speed_mm_s"])
-                self._viscosity(n, sub, h, p["viscosity_sigma_1_s"], p["viscosity_beta_s_mm"], p["max_speed_mm_s"])
+                for passes in PASS_NAMES if self.separate_passes else (SUBSTEP,):
+                    self._passes(passes, *values)
             self._apply_suction(dt_s, suction)
-            self._sort(n, size[0], size[1])  # drops those that left in the last substep or to suction
+            self._passes(SORT, *values)  # drops those that left in the last substep or to suction
             self.count = int(self.alive_count[None])
         self.step_index += 1
+
+    @ti.kernel
+    def _passes(self, passes: ti.template(), n: ti.i32, dt: ti.f32, size_x: ti.f32, size_y: ti.f32, h: ti.f32, nu: ti.f32,
+                film: ti.f32, rest: ti.f32, pinning: ti.f32, lifetime: ti.f32, k: ti.f32, k_near: ti.f32, inertia: ti.f32,
+                max_speed: ti.f32, clotting: ti.f32, rest_speed: ti.f32, sigma: ti.f32, beta: ti.f32):
+        """The passes in `passes` (bits PREDICT ... VISCOSITY), in the order of a substep, in one launch: each pass's
+        loops run one after the other, as separate kernels would, at one launch from Python instead of six."""
+        if ti.static(passes & PREDICT):
+            self._predict(n, dt, nu, film, rest, pinning, lifetime)
+        if ti.static(passes & SORT):
+            self._sort(n, size_x, size_y)
+        if ti.static(passes & DENSITY):
+            self._density_pass(n, h, rest, k, k_near)
+        if ti.static(passes & RELAX):
+            self._relax(n, dt, h)
+        if ti.static(passes & FINISH):
+            self._finish(n, dt, inertia, max_speed, clotting, rest_speed)
+        if ti.static(passes & VISCOSITY):
+            self._viscosity(n, dt, h, sigma, beta, max_speed)
 
     def _cell_size_for(self, radius_mm: float):
         """Cells never shrink below the size the grid was allocated for (a smaller radius stays correct)."""
@@ -328,8 +352,8 @@ class Bleeding:
             result = self.texel_position[row, col] + self.texel_ex[row, col] * (x[0] - col - 0.5) + self.texel_ey[row, col] * (x[1] - row - 0.5)
         return result
 
-    @ti.kernel
-    def _predict(self, n: ti.i32, dt: ti.f32, nu: ti.f32, film: ti.f32, rest: ti.f32, pinning: ti.f32, lifetime: ti.f32):
+    @ti.func
+    def _predict(self, n, dt, nu, film, rest, pinning, lifetime):
         """Gravity with film drag (exact), advance; particles off the surface or too old leave."""
         for i in range(n):
             if i < self.alive_count[None] and self.fate[i] == ALIVE:
@@ -359,8 +383,8 @@ class Bleeding:
                 elif self.age[i] > lifetime:
                     self.fate[i] = EXPIRED
 
-    @ti.kernel
-    def _sort(self, n: ti.i32, size_x: ti.f32, size_y: ti.f32):
+    @ti.func
+    def _sort(self, n, size_x, size_y):
         """Alive particles in cell order at the front of the pool (neighbours sit close in memory), the others counted
         by fate and dropped: a stable counting sort (serial prefix sum and scatter, so deterministic), then a gather.
         size_x, size_y: cell size in texels."""
@@ -452,8 +476,8 @@ class Bleeding:
         q = ti.select(valid, ti.max(1.0 - r * inv_h, 0.0), 0.0)
         return d, r, q, m
 
-    @ti.kernel
-    def _density_pass(self, n: ti.i32, h: ti.f32, rest: ti.f32, k: ti.f32, k_near: ti.f32):
+    @ti.func
+    def _density_pass(self, n, h, rest, k, k_near):
         """Density and near density over the candidates in range."""
         for i in range(n):
             if i < self.alive_count[None]:
@@ -468,8 +492,8 @@ class Bleeding:
                 self.density[i] = ti.Vector([rho, rho_near])
                 self.pressure[i] = ti.Vector([k * (rho - rest), k_near * rho_near])
 
-    @ti.kernel
-    def _relax(self, n: ti.i32, dt: ti.f32, h: ti.f32):
+    @ti.func
+    def _relax(self, n, dt, h):
         """Double density relaxation, symmetric gather: each pair moves i by -dt^2/2 (P_i + P_j)(...) r_hat."""
         for i in range(n):
             if i < self.alive_count[None]:
@@ -501,8 +525,8 @@ class Bleeding:
                     shift *= limit / length
                 self.pos_new[i] = xi + shift
 
-    @ti.kernel
-    def _finish(self, n: ti.i32, dt: ti.f32, inertia: ti.f32, max_speed: ti.f32, clotting: ti.f32, rest_speed: ti.f32):
+    @ti.func
+    def _finish(self, n, dt, inertia, max_speed, clotting, rest_speed):
         """Velocity from displacement (inertia, clamp), clotting; leaving the surface."""
         for i in range(n):
             if i < self.alive_count[None]:
@@ -528,8 +552,8 @@ class Bleeding:
             speed = max_speed
         return v, speed
 
-    @ti.kernel
-    def _viscosity(self, n: ti.i32, dt: ti.f32, h: ti.f32, sigma: ti.f32, beta: ti.f32, max_speed: ti.f32):
+    @ti.func
+    def _viscosity(self, n, dt, h, sigma, beta, max_speed):
         """Viscosity impulses between approaching pairs in range, gathered: v_i -= I_ij / 2; then the speed clamp."""
         for i in range(n):
             if i < self.alive_count[None]:

@@ -50,11 +50,15 @@ def throughput(count: int, steps: int, numpy_steps: int) -> dict:
 
 
 def profile(count: int, steps: int = 5) -> dict:
-    """ms per step spent in each Taichi kernel of sims.sph.Bleeding.step (device synchronised around every call, so
-    launches are serialised) and in the whole step, for disk(count); 'host' is the step less its kernels."""
+    """ms per step spent in each pass of sims.sph.Bleeding.step (launched one pass per kernel here, device synchronised
+    around every launch, so they are serialised), in the other kernels and in the whole step, for disk(count); 'host'
+    is the step less its kernels. The step itself launches a substep's passes as one kernel."""
     import taichi as ti
+    from sims.sph import PASS_NAMES
 
     bleeding, _ = disk(count)
+    bleeding.separate_passes = True
+    bleeding.step(0.01)  # compile the kernels of one pass each
     spent = {}
 
     def timed(name, kernel):
@@ -63,7 +67,8 @@ def profile(count: int, steps: int = 5) -> dict:
             start = time.perf_counter()
             kernel(*args)
             ti.sync()
-            spent[name] = spent.get(name, 0.0) + time.perf_counter() - start
+            key = PASS_NAMES.get(args[0], name) if name == "_passes" else name
+            spent[key] = spent.get(key, 0.0) + time.perf_counter() - start
         return call
 
     for name, member in type(bleeding).__dict__.items():
@@ -141,7 +146,8 @@ def render(results: dict) -> list[str]:
     profiles = results.get("profile", [])
     if profiles:
         names = sorted(profiles[0]["ms_per_step"], key=lambda name: (name in ("step", "host"), name))
-        lines += ["", "ms per step in each kernel of the same step (device synchronised around every kernel; 'host': the rest):", "",
+        lines += ["", "ms per step in each pass of the same step (each launched alone, device synchronised around every launch; "
+                  "'host': the rest):", "",
                   "| particles | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]
         lines += [f"| {row['particles']:,} | " + " | ".join(f"{row['ms_per_step'].get(name, 0.0):.3g}" for name in names) + " |" for row in profiles]
     lines += [

@@ -9,9 +9,10 @@ splat) and the look keeps, per texel of that grid,
 so what a picture shows depends on the simulated time only, never on how often a front end asks for one. A trail that
 decays below TRAIL_FLOOR_MM is dry (0): a finished bleed stops costing anything a few blood_trail_s later. The
 composer (sims.compose) reads trail, stain and the method's clot fraction at display texels through sample():
-bilinearly (sims.resample) when the method runs on a coarser grid. Each step flags the tiles of the film's grid (about
-DISPLAY_TEXELS_PER_TILE display texels a side, at least NEAR_TEXELS film texels) where a trail or a stain may have changed (fresh blood or a trail there); take_touched() hands them to the look,
-which recomposes only the display tiles they reach.
+bilinearly (sims.resample) when the method runs on a coarser grid. The clot fraction shown follows the method's in
+steps of CLOT_STEP (a pool at rest darkens as it clots). Each step flags the tiles of the film's grid (about
+DISPLAY_TEXELS_PER_TILE display texels a side, at least NEAR_TEXELS film texels) where a trail, a stain or the clot
+shown may have changed; take_touched() hands them to the look, which recomposes only the display tiles they reach.
 """
 import math
 
@@ -26,6 +27,7 @@ SPLAT_TILE = 16    # texels per side of the particles' filter tiles (ParticleSpl
 NEAR_TEXELS = 2    # film texels about a wet one whose display texels the look smooths (BloodFilm.take_near)
 DISPLAY_TEXELS_PER_TILE = 16  # BloodFilm's touched tiles cover about this many display texels a side
 TRAIL_FLOOR_MM = 1e-4  # a decaying trail thinner than this is dry: 0.1 um of blood changes no colour level
+CLOT_STEP = 0.01  # the clot fraction shown follows the method's in steps of this (about a colour level at most)
 
 
 @ti.data_oriented
@@ -114,8 +116,10 @@ class BloodFilm(GridReader):
         # display texels per texel of the film's grid (8 under the default height field): the look smooths the film
         # over about one such texel, so that it has no cell-shaped contours (sims.compose)
         self.display_per_texel = 1 if self.resampler is None else max(1, round(self.resampler.fine_shape[1] / self.resampler.coarse_shape[1]))
-        self.clot = bleeding.film_clot
-        self.has_clot = self.clot is not None
+        self.clot_live = bleeding.film_clot  # the method's clot fraction, changing every substep
+        self.has_clot = self.clot_live is not None
+        # the clot fraction the look shows (advance: within CLOT_STEP of the live one)
+        self.clot = ti.field(ti.f32, shape) if self.has_clot else None
         self.fresh = ti.field(ti.f32, shape)
         self.trail = ti.field(ti.f32, shape)  # mm
         self.stain = ti.field(ti.f32, shape)  # mm
@@ -129,6 +133,8 @@ class BloodFilm(GridReader):
         """Dry, and every tile touched (what was shown before goes)."""
         self.trail.fill(0.0)
         self.stain.fill(0.0)
+        if self.has_clot:
+            self.clot.fill(0.0)
         self.near.fill(0)
         self.touched.fill(1)
         self._settled = False
@@ -151,6 +157,11 @@ class BloodFilm(GridReader):
                 new_stain = ti.max(stain, fresh)
                 if new_trail != trail or new_stain != stain:
                     self.trail[r, c], self.stain[r, c] = new_trail, new_stain
+                    self.touched[r // self.tile, c // self.tile] = 1
+            if ti.static(self.has_clot):  # blood at rest darkens as it clots, with no change of depth
+                live = self.clot_live[r, c]
+                if ti.abs(live - self.clot[r, c]) >= CLOT_STEP:
+                    self.clot[r, c] = live
                     self.touched[r // self.tile, c // self.tile] = 1
 
     def take_touched(self) -> np.ndarray:

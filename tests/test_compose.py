@@ -83,3 +83,38 @@ def test_recomposing_where_the_blood_changed_shows_what_a_full_pass_shows(scene_
             assert np.array_equal(partial, full), f"{name} at t = {scene.time_s:.2f} s"
         scene.take_display_changes()  # the full pass wrote every tile (the same bytes): not a change to check
     assert 0 < max(written) and min(written) < scene.display_tiles.tiles  # partial passes, and blood was recomposed
+
+
+def test_blood_at_rest_that_clots_is_recomposed():
+    """A pool whose depth stays while it clots (the height field's clot grows where blood rests): the film flags the
+    tiles where the clot shown moved by CLOT_STEP or more, so the look darkens there; a smaller change flags nothing."""
+    import taichi as ti
+
+    from sims.film import CLOT_STEP, BloodFilm
+
+    class Pool:  # a bleeding method with a film 0.5 mm deep everywhere, always moving
+        film_shape, film_display, moved = (32, 32), None, True
+
+        def __init__(self):
+            self.film_clot = ti.field(ti.f32, self.film_shape)
+
+        def fresh_film(self, out):
+            out.fill(0.5)
+
+    pool = Pool()
+    film = BloodFilm(pool)
+    film.advance(0.01, 1.0)
+    film.take_touched()  # the pool appears
+    film.advance(0.01, 1.0)
+    assert not film.take_touched().any()  # at rest: nothing to recompose
+    clot = np.zeros(Pool.film_shape, np.float32)
+    clot[20:, 20:] = 0.5 * CLOT_STEP
+    pool.film_clot.from_numpy(clot)
+    film.advance(0.01, 1.0)
+    assert not film.take_touched().any()
+    clot[20:, 20:] = 0.5
+    pool.film_clot.from_numpy(clot)
+    film.advance(0.01, 1.0)
+    touched = film.take_touched()
+    assert touched[-1, -1] and not touched[0, 0]
+    np.testing.assert_array_equal(film.clot.to_numpy(), clot)

@@ -19,8 +19,8 @@ writes only its own particle; the sort's prefix sum and scatter run serially (a 
 results are bitwise identical across runs and thread counts. A substep's passes are one launch (_passes): on a CPU
 a launch from Python costs 25-45 us, a third of a 1,000-particle step when each pass was its own. Kernels loop over
 the pool's count at the start of the step and skip past the device's alive_count: the host reads the count back once
-per step. Work per particle is capped
-(MAX_CANDIDATES examined, the first in cell order), so dense clumps cost bounded time.
+per step. Work per particle is capped (MAX_CANDIDATES examined, the first in cell order), so dense clumps cost
+bounded time.
 
 Accounting: spawned = alive + suctioned + left_surface + expired, exactly, at every step.
 
@@ -439,9 +439,10 @@ class Bleeding:
 
     @ti.func
     def _candidates(self, i):
-        """The particles i examines: three runs lo[k] <= j < hi[k] of the sorted pool (the rows of its 3 x (2 CELL_COLUMNS + 1) cells),
-        MAX_CANDIDATES in all at most, the first in cell order. A kernel walks run k from lo[k] to _run_end(lo[k], hi[k])
-        and _pair gives weight 0 past hi[k]: whole vectors, no scalar remainder (measured 2.7 times faster on a CPU)."""
+        """The particles i examines: three runs lo[k] <= j < hi[k] of the sorted pool (the rows of its
+        3 x (2 CELL_COLUMNS + 1) cells), MAX_CANDIDATES in all at most, the first in cell order. A pass walks run k from
+        lo[k] to _run_end(lo[k], hi[k]) and _pair gives weight 0 past hi[k]: whole vectors, no scalar remainder
+        (measured 2.7 times faster on a CPU)."""
         cx, cy = self.cell[i] % self.cells_x, self.cell[i] // self.cells_x
         x0, x1 = ti.max(cx - CELL_COLUMNS, 0), ti.min(cx + CELL_COLUMNS, self.cells_x - 1)
         lo, hi = ti.Vector([0, 0, 0]), ti.Vector([0, 0, 0])

@@ -106,8 +106,9 @@ class ParticleSplat:
 @ti.data_oriented
 class BloodFilm(GridReader):
     """A bleeding method's film as the look shows it (module docstring). bleeding: a sims.models.BleedingMethod, whose
-    fresh_film(out) writes its film (mm) on film_shape and whose film_display is the GridResampler onto the display
-    (None: its grid is the display's); clot: its clot fraction field on that grid, or None."""
+    fresh_film(out) writes its film (mm) on film_shape (or, if it has one, whose Taichi function film_depth(r, c) is
+    read in the film's own kernel instead: one launch less per step) and whose film_display is the GridResampler onto
+    the display (None: its grid is the display's); clot: its clot fraction field on that grid, or None."""
 
     def __init__(self, bleeding):
         self.bleeding = bleeding
@@ -117,6 +118,7 @@ class BloodFilm(GridReader):
         # over about one such texel, so that it has no cell-shaped contours (sims.compose)
         self.display_per_texel = 1 if self.resampler is None else max(1, round(self.resampler.fine_shape[1] / self.resampler.coarse_shape[1]))
         self.clot_live = bleeding.film_clot  # the method's clot fraction, changing every substep
+        self.reads_method = hasattr(bleeding, "film_depth")  # _keep reads the method's film itself: no fresh_film launch
         self.has_clot = self.clot_live is not None
         # the clot fraction the look shows (advance: within CLOT_STEP of the live one)
         self.clot = ti.field(ti.f32, shape) if self.has_clot else None
@@ -144,13 +146,19 @@ class BloodFilm(GridReader):
         while the film is settled (take_touched) and the method's step moved no blood."""
         if self._settled and not self.bleeding.moved:
             return
-        self.bleeding.fresh_film(self.fresh)
+        if not self.reads_method:
+            self.bleeding.fresh_film(self.fresh)
         self._keep(math.exp(-dt_s / trail_s) if trail_s > 0 else 0.0)
 
     @ti.kernel
     def _keep(self, decay: ti.f32):
         for r, c in self.fresh:
-            fresh, trail, stain = self.fresh[r, c], self.trail[r, c], self.stain[r, c]
+            fresh = 0.0
+            if ti.static(self.reads_method):
+                fresh = self.bleeding.film_depth(r, c)
+            else:
+                fresh = self.fresh[r, c]
+            trail, stain = self.trail[r, c], self.stain[r, c]
             if fresh > 0.0 or trail > 0.0:
                 kept = decay * trail
                 new_trail = ti.max(fresh, ti.select(kept >= TRAIL_FLOOR_MM, kept, 0.0))

@@ -672,7 +672,12 @@ class HeightFieldBleeding:
     def fresh_film(self, out: ti.template()):
         """out (this grid) = blood depth, mm."""
         for r, c in out:
-            out[r, c] = self._depth(r, c)
+            out[r, c] = self.film_depth(r, c)
+
+    @ti.func
+    def film_depth(self, r, c):
+        """Blood depth (mm) at texel (r, c) of this grid, for the look's film (sims.film reads it in its own kernel)."""
+        return self._depth(r, c)
 
     def depth_mm(self) -> np.ndarray:
         """(H, W) blood depth along the normal, mm (float64 from the exact volumes)."""

@@ -179,9 +179,9 @@ class LabApp:
         self._build_gui()
 
     def _stream_look(self) -> dict:
-        """Compose the look and stream its base colour, normal and roughness maps (only the tiles that changed are
-        compared and encoded)."""
-        rgb = self.scene.composite()
+        """Compose the look where the stream is about to read it and stream its base colour, normal and roughness maps
+        (only the tiles that changed are compared and encoded; lab.stream.TextureStream.plan)."""
+        rgb = self.scene.composite(self.stream.plan(self.scene.pending_display_changes()))
         return self.stream.update(rgb, *self.scene.material_maps(), changed=self.scene.take_display_changes())
 
     def _client_connected(self, client) -> None:

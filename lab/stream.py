@@ -14,7 +14,11 @@ Publishing is shared, delivery is per browser. An update publishes changed tiles
 stale textures are dropped instead of queued); when the budget runs short the tiles that changed
 most go first (a fresh burn before a fading one, weighed by how long each has waited), and a change
 of a level or two (cooling tissue fades by one level per update) waits `settle_s` to add up before
-it takes a slot. Each published tile is encoded once into a GLB. Then every browser gets, through
+it takes a slot. A front end whose maps are costly to make asks plan() first which texel blocks the next update will
+read, and makes only those (the lab composes the look there only: sims.scene.Scene.composite's `wanted`); the update
+then examines only the tiles plan chose (those never published and, by the change each had when last examined times
+its wait, as many as the rate limit lets go plus two), and the other candidates wait their turn, their maps not yet
+made. Each published tile is encoded once into a GLB. Then every browser gets, through
 viser's per-client scene (`client.scene`), the newest published version of each tile it lacks, as
 a node of its own drawn from its own capped pool of names (which keeps viser's buffers bounded); its
 replaced nodes wait for its own confirmations only. A tile is replaced for a browser only once that
@@ -81,6 +85,8 @@ from PIL import Image
 from lab.client_sync import ClientSync
 
 _MARGIN_TEXELS = 2
+EXTRA_EXAMINED = 2     # tiles a planned update examines beyond those the rate limit lets go at once (plan)
+_MAX_LEVELS = 255      # the change a tile is taken to have until the stream has examined it
 # a browser left between the stream listing it and sending to it: nothing is lost, it is dropped on the next update
 warnings.filterwarnings("ignore", message="Queued a (GlbMessage|FrameMessage) on a closed connection")
 _LINEAR, _CLAMP = 9729, 33071  # glTF sampler constants
@@ -327,6 +333,7 @@ class _Tile:
     glb: bytes | None = None         # the GLB of those crops, shared by every browser
     version: int = -1                # which publication it is (stream-wide count; -1: none in this layout)
     index: int = -1                  # its place in the stream's tiles
+    seen_change: int | None = None   # its largest texel change (levels) when last examined since it was published
 
 
 class _Viewer:
@@ -472,6 +479,7 @@ class TextureStream:
         self._viewers: dict[int, _Viewer] = {}  # client id -> its share of the stream
         self._shape = None  # ((H, W), the maps' kinds) of the layout
         self._candidates: set[int] = set()  # tiles that may differ from what they last published (update's changed)
+        self._examined: set[int] | None = None  # the tiles plan() chose for the next update (None: every candidate)
         self._pad = None    # np.pad widths that make odd-sized maps even, for half-resolution maps
         self.stats = {"updates": 0, "tiles_sent": 0, "bytes": 0, "tiles_deferred": 0, "python_s": 0.0,
                       "tiles_delivered": 0, "removed": 0, "removed_unconfirmed": 0}
@@ -557,7 +565,8 @@ class TextureStream:
         has left waiting. None: any texel may have changed (every tile is compared).
         Returns {"tiles_sent": int, "bytes": int}: tile versions published (each map encoded once, then the GLB sent
         to every browser that keeps up) and their GLB bytes (what viser gets per browser), and "tiles_deferred":
-        changed tiles left for a later update by the rate limit or settling."""
+        changed tiles left for a later update by the rate limit or settling. After plan(), only the tiles it chose
+        are compared (the maps may be stale elsewhere); the others stay candidates for a later update."""
         start = time.perf_counter()
         rgb = np.asarray(rgb)
         if rgb.ndim != 3 or rgb.shape[2] < 3 or rgb.dtype != np.uint8:
@@ -582,6 +591,7 @@ class TextureStream:
             layout = (rgb.shape[:2], tuple(maps))
             if layout != self._shape:
                 self._layout(*layout)
+                self._examined = None  # a new layout publishes every tile: the maps must be whole
             if self._pad is not None:  # half-resolution maps of an odd-sized image: crops may reach one texel past it
                 maps = {kind: np.pad(image, self._pad[:image.ndim], mode="edge") for kind, image in maps.items()}
             self._mark_candidates(changed)
@@ -592,6 +602,35 @@ class TextureStream:
                 self.stats[key] += value
             self.stats["python_s"] += time.perf_counter() - start
         return result
+
+    def plan(self, pending: tuple[int, np.ndarray]) -> tuple[int, np.ndarray] | None:
+        """Before an update whose maps are made on demand: which texel blocks it will read. pending: (block, flags)
+        from the maps' maker, the block x block texel blocks its next maps would change (flags (rows, cols) bool,
+        row-major from row 0; sims.scene.Scene.pending_display_changes). The tiles meeting a flagged block become
+        candidates; of those the update examines the never-published ones and, most urgent first, as many as the
+        rate limit lets go now plus EXTRA_EXAMINED, urgency being the change a tile had when last examined (the
+        most, _MAX_LEVELS, if it was not since its last publication) times (1 + seconds waited). Returns (block,
+        flags) of the blocks those tiles' crops meet, for the maker to bring up to date (the other blocks may be
+        stale: the update does not look at them), or None before the first update (every block is wanted)."""
+        with self._lock:
+            block, flags = pending
+            flags = np.asarray(flags, bool)
+            if self._closed or self._shape is None or flags.shape != tuple(-(-size // block) for size in self._shape[0]):
+                self._examined = None
+                return None
+            self._mark_candidates((block, flags))
+            now = self.clock()
+            self._refill(now)
+            fresh = [index for index in self._candidates if self._tiles[index].sent is None]
+            urgency = sorted(((_MAX_LEVELS if tile.seen_change is None else tile.seen_change) * (1.0 + now - tile.sent_at), index)
+                             for index in self._candidates if (tile := self._tiles[index]).sent is not None)
+            budget = (int(self._tokens) if self.max_tiles_per_s != float("inf") else len(urgency)) + EXTRA_EXAMINED
+            self._examined = set(fresh) | {index for _, index in urgency[::-1][:budget]}
+            wanted = np.zeros_like(flags)
+            for index in self._examined:
+                box = self._tiles[index].geometry
+                wanted[box.r0 // block:-(-box.r1 // block), box.c0 // block:-(-box.c1 // block)] = True
+            return block, wanted
 
     def close(self) -> None:
         """Remove every node of this stream from every browser's scene. Later updates do nothing."""
@@ -618,7 +657,7 @@ class TextureStream:
         for tile in self._tiles:
             tile.geometry = _TileGeometry(tile.positions, tile.uv, tile.faces, tile.morph_ids, tile.morph_delta, self.grid,
                                           shape, _MARGIN_TEXELS, self.roughness, maps, even)
-            tile.sent, tile.encoded, tile.glb, tile.version = None, None, None, -1
+            tile.sent, tile.encoded, tile.glb, tile.version, tile.seen_change = None, None, None, -1, None
 
     def _mark_candidates(self, changed: tuple[int, np.ndarray] | None) -> None:
         """Add the tiles whose crops meet a block flagged in changed (all tiles for None) to the candidates."""
@@ -656,7 +695,7 @@ class TextureStream:
         for tile, crops, fresh in chosen:
             tile.encoded = {**(tile.encoded or {}), **{kind: next(encoded) for kind in fresh}}
             tile.glb = tile.geometry.glb([tile.encoded[kind] for kind in tile.geometry.maps])
-            tile.sent, tile.sent_at, tile.version = crops, now, self._publications
+            tile.sent, tile.sent_at, tile.version, tile.seen_change = crops, now, self._publications, None
             self._publications += 1
             self._candidates.discard(tile.index)
         return {"tiles_sent": len(chosen), "bytes": sum(len(tile.glb) for tile, _, _ in chosen), "tiles_deferred": deferred}
@@ -689,7 +728,8 @@ class TextureStream:
         (levels) times (1 + seconds waited); and the number of tiles whose change (below min_change levels) waits for
         settle_s since the tile's last publication."""
         scored, settling = [], 0
-        for index in sorted(self._candidates):
+        examined, self._examined = self._examined, None
+        for index in sorted(self._candidates if examined is None else self._candidates & examined):
             tile = self._tiles[index]
             if tile.sent is None:
                 scored.append((float("inf"), tile))
@@ -699,6 +739,7 @@ class TextureStream:
                 crop = tile.geometry.crop(image)
                 if not np.array_equal(tile.sent[kind], crop):
                     change = max(change, int(np.abs(tile.sent[kind].astype(np.int16) - crop).max()))
+            tile.seen_change = change
             if change == 0:
                 self._candidates.discard(index)  # as published: nothing to do until a change reaches it
                 continue

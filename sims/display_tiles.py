@@ -10,8 +10,10 @@ compose, from the heat tiles and the film tiles that changed:
   pass along rows); BLOOD_COLUMNS: those grown up and down (its pass along columns);
 - WRITE: TISSUE or BLOOD_COLUMNS (colour, roughness and height are written);
 - NORMAL: tiles whose texels' fill sources lie within a texel of a WRITE tile (the normal map is recomputed).
-Every other tile would come out byte for byte as it is. select() sets these as bits of `flags` for the look's kernels,
-which loop over every display texel and skip the unflagged tiles: a loop over the texture's own layout measured 2.4
+Every other tile would come out byte for byte as it is. select() adds these to each tile's pending work; plan() takes
+the pending work that the maps of some tiles need (all, or those a texture stream is about to read) and sets it as bits
+of `flags` for the look's kernels, so work on tiles nobody reads yet waits. The kernels loop over every display texel
+and skip the unflagged tiles: a loop over the texture's own layout measured 2.4
 times cheaper per texel than one over a list of tiles (35 against 100 ns per texel on one core), and skipping a texel
 costs next to nothing. The tiles written (WRITE or NORMAL) since a front end last asked are kept for take_changed(),
 so a texture stream compares and encodes only those.
@@ -24,6 +26,7 @@ from sims.tiles import tile_grid, tile_index
 
 DISPLAY_TILE = 16  # display texels per tile side
 TISSUE, BLOOD_SAMPLE, BLOOD_ROWS, BLOOD_COLUMNS, WRITE, NORMAL = (1 << bit for bit in range(6))
+EVERYTHING = TISSUE | BLOOD_SAMPLE | BLOOD_ROWS | BLOOD_COLUMNS | WRITE | NORMAL
 
 
 def _reads(taps: np.ndarray | None, fill_index: np.ndarray, source_shape, source_tile: int, tile: int):
@@ -51,7 +54,7 @@ def _grow(flags: np.ndarray, rows: int, cols: int) -> np.ndarray:
 
 @ti.data_oriented
 class DisplayTiles:
-    """The display grid's tiles and what each reads (module docstring); `flags`, `written` and `listed` after select()."""
+    """The display grid's tiles and what each reads (module docstring); `flags`, `written` and `listed` after plan()."""
 
     def __init__(self, fill_index: np.ndarray, heat=None, film=None, blood_reach: int = 0, tile: int = DISPLAY_TILE):
         """fill_index: (H, W) flat display index of each texel's fill source. heat, film: (taps, grid shape, grid
@@ -68,21 +71,23 @@ class DisplayTiles:
         # display tile -> display tiles whose texels' fill sources lie in it (the normal map reads around the source)
         self.fill_reads = _reads(None, fill_index, fill_index.shape, tile, tile)
         self.flags = ti.field(ti.i32, self.tiles)
-        self.written = np.zeros(0, np.int32)  # (N,) row-major indices of the tiles the last select() flagged WRITE or NORMAL
-        self.kinds = 0                  # the OR of every tile's flags at the last select()
+        self.written = np.zeros(0, np.int32)  # (N,) row-major indices of the tiles the last plan() flagged WRITE or NORMAL
+        self.kinds = 0                  # the OR of every tile's flags at the last plan()
+        self._pending = np.zeros(self.tiles, np.int32)  # per tile, the passes (bits) it still needs
         self._changed = np.zeros(self.grid, bool)
-        self._fresh = True              # nothing composed yet: the first select() flags every tile
+        self._fresh = True              # nothing composed yet: the first select() makes every tile pending
 
-    def select(self, changed_heat: np.ndarray | None, changed_film: np.ndarray | None) -> int:
-        """Flag the tiles to recompose from the changed heat tiles and film tiles (bool, row-major over each grid;
-        None: none changed), every tile the first time. Returns how many tiles are written."""
+    def select(self, changed_heat: np.ndarray | None, changed_film: np.ndarray | None) -> None:
+        """Add to the pending work the tiles to recompose from the changed heat tiles and film tiles (bool, row-major
+        over each grid; None: none changed), every tile the first time. plan() then flags what a compose does."""
         if self._fresh:
             self._fresh = False
-            return self.select_all()
+            self._pending[:] = EVERYTHING
+            return
         heat_changed = changed_heat is not None and self.heat_reads is not None and np.any(changed_heat)
         film_changed = changed_film is not None and self.film_reads is not None and np.any(changed_film)
         if not (heat_changed or film_changed):  # an idle scene: nothing to work out
-            return self._set(np.zeros(self.tiles, np.int32))
+            return
         none = np.zeros(self.tiles, bool)
         tissue = (self.heat_reads.T @ np.ravel(changed_heat).astype(np.int32)) > 0 if heat_changed else none
         blood = (self.film_reads.T @ np.ravel(changed_film).astype(np.int32)) > 0 if film_changed else none
@@ -90,13 +95,42 @@ class DisplayTiles:
         columns = _grow(rows, self.blood_reach, 0)                   # the pass along columns up and down
         write = tissue.reshape(self.grid) | columns
         normal = (self.fill_reads.T @ _grow(write, 1, 1).ravel().astype(np.int32)) > 0
-        flags = (TISSUE * tissue + BLOOD_SAMPLE * blood + BLOOD_ROWS * rows.ravel() + BLOOD_COLUMNS * columns.ravel()
-                 + WRITE * write.ravel() + NORMAL * normal).astype(np.int32)
-        return self._set(flags)
+        self._pending |= (TISSUE * tissue + BLOOD_SAMPLE * blood + BLOOD_ROWS * rows.ravel() + BLOOD_COLUMNS * columns.ravel()
+                          + WRITE * write.ravel() + NORMAL * normal).astype(np.int32)
 
     def select_all(self) -> int:
-        """Flag every tile for everything (a full pass)."""
-        return self._set(np.full(self.tiles, TISSUE | BLOOD_SAMPLE | BLOOD_ROWS | BLOOD_COLUMNS | WRITE | NORMAL, np.int32))
+        """Flag every tile for everything (a full pass). Returns how many tiles are written."""
+        self._fresh = False
+        self._pending[:] = EVERYTHING
+        return self.plan()
+
+    def pending_outputs(self) -> np.ndarray:
+        """(rows, cols) bool: the tiles whose maps the pending work would write (WRITE or NORMAL)."""
+        return ((self._pending & (WRITE | NORMAL)) != 0).reshape(self.grid)
+
+    def plan(self, wanted: np.ndarray | None = None) -> int:
+        """Flag for the look's kernels the pending work that the maps of the `wanted` tiles ((rows, cols) bool; None:
+        every tile) need, and take it off the pending work; the rest waits for a later plan. Walking back from the
+        maps: the normal map of a tile reads the surface height one texel around its texels' fill sources (tiles
+        grown by one), the colour pass reads the blood at the tile itself and the tissue at its fill sources, the
+        blood's column pass reads its row pass up and down by blood_reach tiles, and that one the sampled film left
+        and right. Returns how many tiles are written."""
+        pending = self._pending
+        if wanted is None:
+            flags = pending.copy()
+        else:
+            outputs = np.ravel(wanted).astype(bool)
+            normal = outputs & ((pending & NORMAL) != 0)
+            sources = (self.fill_reads @ normal.astype(np.int32)) > 0  # tiles holding their texels' fill sources
+            write = (outputs | _grow(sources.reshape(self.grid), 1, 1).ravel()) & ((pending & WRITE) != 0)
+            tissue = ((self.fill_reads @ write.astype(np.int32)) > 0) & ((pending & TISSUE) != 0)
+            columns = write & ((pending & BLOOD_COLUMNS) != 0)
+            rows = _grow(columns.reshape(self.grid), self.blood_reach, 0).ravel() & ((pending & BLOOD_ROWS) != 0)
+            sample = _grow(rows.reshape(self.grid), 0, self.blood_reach).ravel() & ((pending & BLOOD_SAMPLE) != 0)
+            flags = (TISSUE * tissue + BLOOD_SAMPLE * sample + BLOOD_ROWS * rows + BLOOD_COLUMNS * columns
+                     + WRITE * write + NORMAL * normal).astype(np.int32)
+        self._pending = pending & ~flags
+        return self._set(flags)
 
     def _set(self, flags: np.ndarray) -> int:
         self.kinds = int(np.bitwise_or.reduce(flags))
@@ -109,7 +143,7 @@ class DisplayTiles:
 
     @property
     def listed(self) -> int:
-        """How many tiles the last select() flagged WRITE or NORMAL."""
+        """How many tiles the last plan() flagged WRITE or NORMAL."""
         return len(self.written)
 
     def take_changed(self) -> np.ndarray:

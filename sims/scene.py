@@ -38,6 +38,9 @@ class SceneParameter:
     config_key: str | None
 
 
+NEAR_CACHE = 64  # positions texel_near remembers
+
+
 class Refused(ValueError):
     """A value from outside (a browser, a script) that the scene does not accept; the message says why."""
 
@@ -164,6 +167,8 @@ class Scene:
         self._triangles_mm = None     # (F, 3, 3) the mesh's triangles, for rays (tissue_distance_mm)
         self._clearances = {}         # (tool, position, direction, tip offset) -> tool_clearance_mm
         self._parameters = None  # (tool and point names, parameter table) made by parameters()
+        self._nearest: dict = {}      # world position (mm) -> nearest surface texel (texel_near)
+        self._coagulated: dict = {}   # heat grid texel -> 1 - exp(-Omega) read since the burn last changed
         if "cautery" in self.models:
             from sims.cautery import Cautery
             from sims.heat_display import HeatDisplay
@@ -225,6 +230,7 @@ class Scene:
                 self.cautery.step(dt)
             if self.cautery.tiles.awake or self.cautery.scheme == "implicit":
                 self._unchecked.add("cautery")
+                self._coagulated.clear()
         if self.bleeding is not None:
             with self._timed("bleeding"):
                 self._bleed(dt)
@@ -521,15 +527,25 @@ class Scene:
         return self.surface.position_mm[self.texel_near(hit)].astype(np.float64)
 
     def texel_near(self, position_mm) -> tuple[int, int]:
-        """(row, col) of the surface texel nearest to a world position (mm)."""
-        _, index = self._texel_tree.query(np.asarray(position_mm, np.float64))
-        return tuple(int(v) for v in self._texels[index])
+        """(row, col) of the surface texel nearest to a world position (mm); the last NEAR_CACHE answers are kept (a
+        bleed point asks every step, mostly from where it was)."""
+        key = tuple(float(v) for v in np.asarray(position_mm, np.float64).ravel())
+        texel = self._nearest.get(key)
+        if texel is None:
+            _, index = self._texel_tree.query(key)
+            texel = tuple(int(v) for v in self._texels[index])
+            self._nearest = {key: texel} if len(self._nearest) >= NEAR_CACHE else {**self._nearest, key: texel}
+        return texel
 
     def coagulated_fraction(self, texel_rc) -> float:
-        """1 - exp(-Omega) at a texel; 0 without the cautery model."""
+        """1 - exp(-Omega) at a texel; 0 without the cautery model. Read from the device once per texel while the burn
+        does not change (Scene.step forgets the values when the cautery stepped)."""
         if self.cautery is None:
             return 0.0
-        return float(1.0 - np.exp(-float(self.cautery.omega[self.heat_display.coarse_texel(texel_rc)])))
+        coarse = self.heat_display.coarse_texel(texel_rc)
+        if coarse not in self._coagulated:
+            self._coagulated[coarse] = float(1.0 - np.exp(-float(self.cautery.omega[coarse])))
+        return self._coagulated[coarse]
 
     def bleed_rates(self) -> dict:
         """Current rate (ml/s) of every bleed point, after coagulation of the tissue under it."""
@@ -579,19 +595,39 @@ class Scene:
         if self.cautery is not None:
             self.cautery.reset()
             self._active_tool = None
+            self._coagulated.clear()
         if self.bleeding is not None:
             self.bleeding.reset()
             self.film.reset()
 
     # --- outputs ------------------------------------------------------------------------------
-    def composite(self) -> np.ndarray:
+    def composite(self, wanted: tuple[int, np.ndarray] | None = None) -> np.ndarray:
         """The display texture's base colour (H, W, 3) uint8, image orientation (row 0 = v 1); material_maps() then
-        gives its normal and roughness maps. It shows the state after the last step, whenever it is called."""
+        gives its normal and roughness maps. It shows the state after the last step, whenever it is called.
+        wanted: (tile, flags) from a front end that reads only some of the maps now, flags (rows, cols) bool over
+        tile x tile texel blocks (pending_display_changes' grid): only those blocks are brought up to date, the rest
+        keep what they showed and their work waits (sims.display_tiles). None: every texel is up to date."""
         with self._timed("compose"):
-            heat = None if self.cautery is None else self.cautery.take_changed_tiles(self.composer.shows_temperature)
-            film = None if self.film is None else self.film.take_touched()
-            self.display_tiles.select(heat, film)
-            return self.composer.compose(self.display_tiles, None if self.cautery is None else self.heat_display, self.film)
+            self._collect_display_changes()
+            tiles = self.display_tiles
+            if wanted is not None and (wanted[0] != tiles.tile or np.shape(wanted[1]) != tiles.grid):
+                raise ValueError(f"wanted: {np.shape(wanted[1])} blocks of {wanted[0]} texels; the display has "
+                                 f"{tiles.grid} tiles of {tiles.tile}")
+            tiles.plan(None if wanted is None else wanted[1])
+            return self.composer.compose(tiles, None if self.cautery is None else self.heat_display, self.film)
+
+    def pending_display_changes(self) -> tuple[int, np.ndarray]:
+        """(tile, flags): the tile x tile texel blocks of the maps that the next composite() would change (flags
+        (rows, cols) bool, row-major from row 0), so a front end can ask for only some of them."""
+        with self._timed("compose"):
+            self._collect_display_changes()
+            return self.display_tiles.tile, self.display_tiles.pending_outputs()
+
+    def _collect_display_changes(self) -> None:
+        """Hand the tiles the burn and the film changed since the last call to the display's pending work."""
+        heat = None if self.cautery is None else self.cautery.take_changed_tiles(self.composer.shows_temperature)
+        film = None if self.film is None else self.film.take_touched()
+        self.display_tiles.select(heat, film)
 
     def material_maps(self) -> tuple[np.ndarray, np.ndarray]:
         """(normal (H, W, 3) uint8, roughness (H, W) uint8) of the last composite() (sims.compose.Composer)."""

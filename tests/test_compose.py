@@ -85,6 +85,41 @@ def test_recomposing_where_the_blood_changed_shows_what_a_full_pass_shows(scene_
     assert 0 < max(written) and min(written) < scene.display_tiles.tiles  # partial passes, and blood was recomposed
 
 
+def test_composing_only_the_wanted_tiles_shows_there_what_a_full_pass_shows():
+    """Scene.composite(wanted), as the lab asks for the tiles its texture stream is about to read: two identical
+    hemostasis scenes step together, one composes every tile, the other only a changing third of the tiles whose maps
+    would change (pending_display_changes); in every wanted tile the maps are byte for byte the full pass's, the
+    others keep what they showed, and a composite of everything afterwards catches up with the full pass."""
+    from sims.scene import Scene
+
+    overrides = ["texture_size=128"]
+    full, lazy = (Scene.from_file(REPO_ROOT / "scenes" / "hemostasis.yaml", overrides) for _ in range(2))
+    rng = np.random.default_rng(3)
+    lazy_written, full_written, before = 0, 0, None
+    for update in range(12):
+        for _ in range(40):
+            full.step()
+            lazy.step()
+        tile, pending = lazy.pending_display_changes()
+        wanted = pending & (rng.random(pending.shape) < 1 / 3)
+        shown = [lazy.composite((tile, wanted)), *lazy.material_maps()]
+        lazy_written += lazy.display_tiles.listed
+        truth = shown_maps(full)
+        full_written += full.display_tiles.listed
+        inside = np.kron(wanted, np.ones((tile, tile), bool))[:truth[0].shape[0], :truth[0].shape[1]]
+        for name, partial, whole in zip(("colour", "normal", "roughness"), shown, truth):
+            assert np.array_equal(partial[inside], whole[inside]), f"{name} in a wanted tile at t = {full.time_s:.2f} s"
+        if before is not None:
+            written = np.zeros(pending.size, bool)
+            written[lazy.display_tiles.written] = True
+            kept = ~np.kron(written.reshape(pending.shape), np.ones((tile, tile), bool))[:inside.shape[0], :inside.shape[1]]
+            assert kept.any() and np.array_equal(shown[0][kept], before[kept]), "a tile that was not written changed"
+        before = shown[0]
+    assert lazy_written < full_written  # work waited
+    for name, partial, whole in zip(("colour", "normal", "roughness"), shown_maps(lazy), shown_maps(full)):
+        assert np.array_equal(partial, whole), f"{name} after catching up"
+
+
 def test_blood_at_rest_that_clots_is_recomposed():
     """A pool whose depth stays while it clots (the height field's clot grows where blood rests): the film flags the
     tiles where the clot shown moved by CLOT_STEP or more, so the look darkens there; a smaller change flags nothing."""

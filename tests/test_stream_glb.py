@@ -291,6 +291,40 @@ def test_stream_rate_limit_defers_changed_tiles_and_sends_their_newest_crop(serv
     stream.close()
 
 
+def test_a_planned_update_reads_only_the_blocks_it_asked_for(server):
+    """TextureStream.plan: every tile changes faster than the rate limit lets go; the stream asks the maps' maker for
+    the blocks of a few tiles only, the maker brings only those up to date (its maps stay stale elsewhere, as the
+    look's are when sims.scene.Scene.composite gets `wanted`), and every crop published is the newest, never a stale
+    one. Once the changes stop, every tile ends up published with the newest texture."""
+    from lab.stream import TextureStream
+
+    now, block = [0.0], 8
+    stream = TextureStream(server, bumpy_patch(), tiles=4, max_tiles_per_s=8.0, settle_s=0.0, clock=lambda: now[0])
+    truth, shown = np.zeros((64, 64, 3), np.uint8), np.zeros((64, 64, 3), np.uint8)
+
+    def pending():  # the blocks the maker's next maps would change
+        return block, (shown != truth).any(axis=-1).reshape(8, block, 8, block).any(axis=(1, 3))
+
+    assert stream.plan(pending()) is None  # before the first update: every block
+    stream.update(shown)
+    asked = []
+    for step in range(1, 61):
+        now[0] = 0.125 * step
+        truth[:] = min(step, 24)  # changes for 3 s of the clock, then none
+        wanted = stream.plan(pending())
+        asked.append(wanted[1].mean())
+        fresh = np.kron(wanted[1], np.ones((block, block), bool))
+        shown[fresh] = truth[fresh]
+        versions = [tile.version for tile in stream._tiles]
+        stream.update(shown)
+        for tile, before in zip(stream._tiles, versions):
+            if tile.version != before:
+                assert (tile.sent["color"] == truth[0, 0]).all(), f"a stale crop was published at step {step}"
+    assert min(asked[:24]) <= 0.75  # while everything changes, only some blocks are asked for
+    assert all((tile.sent["color"] == 24).all() for tile in stream._tiles), "every tile ends with the newest texture"
+    stream.close()
+
+
 def test_stream_rate_limit_follows_the_clock_it_is_given(server):
     """A bench passes the simulated time as the clock: the stream then publishes per simulated second what the lab
     publishes per second, however fast or slow the machine runs (lab.bench.common.lab_stream)."""

@@ -116,10 +116,12 @@ class DisplayTiles:
         blood's column pass reads its row pass up and down by blood_reach tiles, and that one the sampled film left
         and right. Returns how many tiles are written."""
         pending = self._pending
-        if wanted is None:
+        outputs = None if wanted is None else np.ravel(wanted).astype(bool)
+        if outputs is None:
             flags = pending.copy()
+        elif not (outputs & ((pending & (WRITE | NORMAL)) != 0)).any():  # nothing the wanted tiles show is pending
+            flags = np.zeros_like(pending)
         else:
-            outputs = np.ravel(wanted).astype(bool)
             normal = outputs & ((pending & NORMAL) != 0)
             sources = (self.fill_reads @ normal.astype(np.int32)) > 0  # tiles holding their texels' fill sources
             write = (outputs | _grow(sources.reshape(self.grid), 1, 1).ravel()) & ((pending & WRITE) != 0)

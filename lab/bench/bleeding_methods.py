@@ -52,6 +52,7 @@ import numpy as np
 
 from lab.bench.common import grid_faces, json_finite, pyplot, save, synced_seconds
 from sims.config import REPO_ROOT
+from sims.height_field import TILE as HEIGHT_FIELD_TILE
 
 G_MM_S2 = 9810.0
 GRAVITY = (0.0, 0.0, -G_MM_S2)
@@ -546,7 +547,7 @@ def render(results: dict) -> list[str]:
         "Wall ms per simulated second over the 20 steps right after each bled volume (the fastest of 10 runs of 2 steps, scaled: "
         "a burst of other load does not count); the state (on surface, particles, tiles) is at the mark. Blood runs off "
         "the patch's lower edge, so what is on the surface is given too, with the particles alive or the height field's "
-        "awake 8² tiles and substeps per 0.01 s step. Wall so far: the whole run to that point (compiled kernels).",
+        f"awake {HEIGHT_FIELD_TILE}² tiles and substeps per 0.01 s step. Wall so far: the whole run to that point (compiled kernels).",
         "",
         "| method | resolution | bled (ml) | on surface (ml) | particles / awake tiles (substeps) | max thickness (mm) | ms per simulated s | wall so far (s) |",
         "|---|---|---|---|---|---|---|---|",

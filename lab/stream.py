@@ -16,9 +16,9 @@ most go first (a fresh burn before a fading one, weighed by how long each has wa
 of a level or two (cooling tissue fades by one level per update) waits `settle_s` to add up before
 it takes a slot. A front end whose maps are costly to make asks plan() first which texel blocks the next update will
 read, and makes only those (the lab composes the look there only: sims.scene.Scene.composite's `wanted`); the update
-then examines only the tiles plan chose (those never published and, by the change each had when last examined times
-its wait, as many as the rate limit lets go plus two), and the other candidates wait their turn, their maps not yet
-made. Each published tile is encoded once into a GLB. Then every browser gets, through
+then examines only the tiles plan chose (those never published and, by the time since each was last published or
+examined and by the change it had then unless its maps changed again since, as many as the rate limit lets go plus
+two), and the other candidates wait their turn, their maps not yet made. Each published tile is encoded once into a GLB. Then every browser gets, through
 viser's per-client scene (`client.scene`), the newest published version of each tile it lacks, as
 a node of its own drawn from its own capped pool of names (which keeps viser's buffers bounded); its
 replaced nodes wait for its own confirmations only. A tile is replaced for a browser only once that
@@ -334,6 +334,7 @@ class _Tile:
     version: int = -1                # which publication it is (stream-wide count; -1: none in this layout)
     index: int = -1                  # its place in the stream's tiles
     seen_change: int | None = None   # its largest texel change (levels) when last examined since it was published
+    examined_at: float = -1.0        # when an update last compared its crops (the stream's clock)
 
 
 class _Viewer:
@@ -608,8 +609,11 @@ class TextureStream:
         from the maps' maker, the block x block texel blocks its next maps would change (flags (rows, cols) bool,
         row-major from row 0; sims.scene.Scene.pending_display_changes). The tiles meeting a flagged block become
         candidates; of those the update examines the never-published ones and, most urgent first, as many as the
-        rate limit lets go now plus EXTRA_EXAMINED, urgency being the change a tile had when last examined (the
-        most, _MAX_LEVELS, if it was not since its last publication) times (1 + seconds waited). Returns (block,
+        rate limit lets go now plus EXTRA_EXAMINED, urgency being the change a tile had when last examined if nothing
+        reached it since (the most, _MAX_LEVELS, if it was not examined since its last publication or a change
+        reached it again: a tile found unchanged or settling is not passed over when a burn starts in it) times
+        (1 + seconds since it was last published or examined: tiles whose changes show no texel, as heat below a
+        colour level, take their turn and do not hold the budget). Returns (block,
         flags) of the blocks those tiles' crops meet, for the maker to bring up to date (the other blocks may be
         stale: the update does not look at them), or None before the first update (every block is wanted)."""
         with self._lock:
@@ -618,11 +622,16 @@ class TextureStream:
             if self._closed or self._shape is None or flags.shape != tuple(-(-size // block) for size in self._shape[0]):
                 self._examined = None
                 return None
-            self._mark_candidates((block, flags))
+            for index, tile in enumerate(self._tiles):
+                box = tile.geometry
+                if flags[box.r0 // block:-(-box.r1 // block), box.c0 // block:-(-box.c1 // block)].any():
+                    self._candidates.add(index)
+                    tile.seen_change = None  # its maps change again since it was examined: how much is not known
             now = self.clock()
             self._refill(now)
             fresh = [index for index in self._candidates if self._tiles[index].sent is None]
-            urgency = sorted(((_MAX_LEVELS if tile.seen_change is None else tile.seen_change) * (1.0 + now - tile.sent_at), index)
+            urgency = sorted(((_MAX_LEVELS if tile.seen_change is None else tile.seen_change)
+                              * (1.0 + now - max(tile.sent_at, tile.examined_at)), index)
                              for index in self._candidates if (tile := self._tiles[index]).sent is not None)
             budget = (int(self._tokens) if self.max_tiles_per_s != float("inf") else len(urgency)) + EXTRA_EXAMINED
             self._examined = set(fresh) | {index for _, index in urgency[::-1][:budget]}
@@ -657,7 +666,7 @@ class TextureStream:
         for tile in self._tiles:
             tile.geometry = _TileGeometry(tile.positions, tile.uv, tile.faces, tile.morph_ids, tile.morph_delta, self.grid,
                                           shape, _MARGIN_TEXELS, self.roughness, maps, even)
-            tile.sent, tile.encoded, tile.glb, tile.version, tile.seen_change = None, None, None, -1, None
+            tile.sent, tile.encoded, tile.glb, tile.version, tile.seen_change, tile.examined_at = None, None, None, -1, None, -1.0
 
     def _mark_candidates(self, changed: tuple[int, np.ndarray] | None) -> None:
         """Add the tiles whose crops meet a block flagged in changed (all tiles for None) to the candidates."""
@@ -739,7 +748,7 @@ class TextureStream:
                 crop = tile.geometry.crop(image)
                 if not np.array_equal(tile.sent[kind], crop):
                     change = max(change, int(np.abs(tile.sent[kind].astype(np.int16) - crop).max()))
-            tile.seen_change = change
+            tile.seen_change, tile.examined_at = change, now
             if change == 0:
                 self._candidates.discard(index)  # as published: nothing to do until a change reaches it
                 continue

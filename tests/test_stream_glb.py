@@ -325,6 +325,49 @@ def test_a_planned_update_reads_only_the_blocks_it_asked_for(server):
     stream.close()
 
 
+def test_a_planned_update_does_not_pass_over_a_tile_a_change_reaches_again(server):
+    """A tile the stream examined and found unchanged (pending work that changed no texel) is examined again when a
+    change reaches it, though six other tiles keep changing and the budget is two tiles an update: a burn starting
+    there is published within the rate limit's turn (one tile a second here), not passed over for good."""
+    from lab.stream import TextureStream
+
+    now, block = [0.0], 8
+    stream = TextureStream(server, bumpy_patch(), tiles=4, max_tiles_per_s=1.0, settle_s=0.0, clock=lambda: now[0])
+    truth = np.zeros((64, 64, 3), np.uint8)
+    stream.update(truth.copy())
+    busy = [(0, 0), (0, 2), (1, 1), (2, 0), (2, 2), (3, 1)]  # stream tiles of 16 x 16 texels, by (row, col)
+    quiet = (3, 3)
+    flags = np.zeros((8, 8), bool)
+
+    def tile_blocks(row, col):
+        flags[2 * row:2 * row + 2, 2 * col:2 * col + 2] = True
+
+    for row, col in busy:
+        tile_blocks(row, col)
+    tile_blocks(*quiet)  # pending work reaches the quiet tile, but its texels stay as published
+    quiet_index = next(i for i, t in enumerate(stream._tiles) if t.geometry.r0 >= 46 and t.geometry.c0 >= 46)
+    published_at = None
+    for step in range(1, 60):
+        for row, col in busy:
+            truth[16 * row:16 * row + 16, 16 * col:16 * col + 16] = 10 * step % 250 + 5
+        if step == 10:
+            truth[52:60, 52:60] = 255  # a burn starts in the quiet tile
+            tile_blocks(*quiet)
+        version = stream._tiles[quiet_index].version
+        now[0] = 0.125 * step
+        stream.plan((block, flags.copy()))
+        stream.update(truth.copy())
+        flags[:] = False
+        for row, col in busy:
+            tile_blocks(row, col)
+        if step >= 10 and stream._tiles[quiet_index].version != version:
+            published_at = step
+            break
+    assert published_at is not None, "the burn's tile was never published"
+    assert (stream._tiles[quiet_index].sent["color"] == 255).any()
+    stream.close()
+
+
 def test_stream_rate_limit_follows_the_clock_it_is_given(server):
     """A bench passes the simulated time as the clock: the stream then publishes per simulated second what the lab
     publishes per second, however fast or slow the machine runs (lab.bench.common.lab_stream)."""

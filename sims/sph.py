@@ -21,7 +21,8 @@ results are bitwise identical across runs and thread counts. A substep's passes 
 a launch from Python costs 25-45 us, a third of a 1,000-particle step when each pass was its own. Kernels loop over
 the pool's count at the start of the step and skip past the device's alive_count: the host reads the count back once
 per step. Work per particle is capped (MAX_CANDIDATES examined, the first in cell order), so dense clumps cost
-bounded time.
+bounded time. A particle carries its texel's metric and gravity, read again (one 32-byte record) only where it moves:
+after the advance and after the relaxation; the sort moves them with the particle.
 
 Accounting: spawned = alive + suctioned + left_surface + expired, exactly, at every step.
 
@@ -94,21 +95,23 @@ class Bleeding:
         self.height, self.width, self.capacity = height, width, int(capacity)
         ex, ey = surface.tangent_u, -surface.tangent_v
         metric = surface.metric
-        self.mask = ti.field(ti.i32, (height, width))
-        self.mask.from_numpy(surface.mask.astype(np.int32))
         if self.walls:  # flat index of the nearest valid texel (itself when valid)
             self.wall_texel = ti.field(ti.i32, (height, width))
             self.wall_texel.from_numpy(np.asarray(surface.fill_index, np.int32).reshape(height, width))
-        self.texel_metric = ti.Vector.field(3, ti.f32, (height, width))   # gxx, gxy, gyy (mm^2 / texel^2)
-        self.texel_metric.from_numpy(np.stack([metric[..., 0, 0], metric[..., 0, 1], metric[..., 1, 1]], axis=-1))
+        # what a particle needs of its texel, in one 32-byte record (one cache line; a 2048^2 texture's maps are far
+        # larger than the caches, so each separate map read was a miss): gravity x, y (grid units / s^2, set_gravity),
+        # metric gxx, gxy, gyy (mm^2 / texel^2), valid (1 or 0), two unused
+        record = np.zeros((height, width, 8), np.float32)
+        record[..., 2:5] = np.stack([metric[..., 0, 0], metric[..., 0, 1], metric[..., 1, 1]], axis=-1)
+        record[..., 5] = surface.mask
+        self.texel_record = ti.Vector.field(8, ti.f32, (height, width))
+        self.texel_record.from_numpy(record)
         self.texel_ex = ti.Vector.field(3, ti.f32, (height, width))       # dP/dx, mm per texel
         self.texel_ey = ti.Vector.field(3, ti.f32, (height, width))       # dP/dy, mm per texel
         self.texel_ex.from_numpy(ex)
         self.texel_ey.from_numpy(ey)
         self.texel_position = ti.Vector.field(3, ti.f32, (height, width))
         self.texel_position.from_numpy(surface.position_mm)
-        self.texel_gravity = ti.Vector.field(2, ti.f32, (height, width))  # grid units / s^2
-        self.set_gravity(gravity_mm_s2)
         # extent of the metric's unit ellipse in grid units: the cell size per mm of radius
         det = np.where(surface.mask, metric[..., 0, 0] * metric[..., 1, 1] - metric[..., 0, 1] ** 2, np.nan)
         self._cell_per_mm = (
@@ -127,10 +130,11 @@ class Bleeding:
         self.pos_new = ti.Vector.field(2, ti.f32, capacity)
         self.vel = ti.Vector.field(2, ti.f32, capacity, layout=soa)
         self.vel_new = ti.Vector.field(2, ti.f32, capacity)
-        self.back_v2 = ti.Vector.field(2, ti.f32, (2, capacity))  # sorting buffers (with pos_new, vel_new)
-        self.back_f3 = ti.Vector.field(3, ti.f32, capacity)
+        self.back_v2 = ti.Vector.field(2, ti.f32, (3, capacity))  # sorting buffers (with pos_new, vel_new)
+        self.back_f3 = ti.Vector.field(3, ti.f32, (2, capacity))
         self.back_i2 = ti.Vector.field(2, ti.i32, capacity)
         self.metric = ti.Vector.field(3, ti.f32, capacity, layout=soa)  # metric at the particle's texel
+        self.gravity = ti.Vector.field(2, ti.f32, capacity)    # gravity at the particle's texel (grid units / s^2)
         self.density = ti.Vector.field(2, ti.f32, capacity)    # rho, rho_near
         self.pressure = ti.Vector.field(2, ti.f32, capacity, layout=soa)  # P, P_near
         self.drag = ti.field(ti.f32, capacity)                 # film drag rate (1/s) of this substep
@@ -148,6 +152,7 @@ class Bleeding:
         self.film_shape, self.film_display, self.film_clot = (height, width), None, None  # the look's film (sims.film)
         self.fresh_thickness = ti.field(ti.f32, (height, width))  # this step's film (blood area, state.npz), mm
         self.reset()
+        self.set_gravity(gravity_mm_s2)
 
     def reset(self) -> None:
         """Empty the pool and zero the counters."""
@@ -174,7 +179,18 @@ class Bleeding:
         bx, by = ex @ g, ey @ g
         ax = (metric[..., 1, 1] * bx - metric[..., 0, 1] * by) / det
         ay = (metric[..., 0, 0] * by - metric[..., 0, 1] * bx) / det
-        self.texel_gravity.from_numpy(np.stack([ax, ay], axis=-1).astype(np.float32))
+        self._set_texel_gravity(np.stack([ax, ay], axis=-1).astype(np.float32))
+        self._locate_all(self.count)
+
+    @ti.kernel
+    def _set_texel_gravity(self, gravity: ti.types.ndarray(dtype=ti.math.vec2, ndim=2)):
+        for row, col in self.texel_record:
+            self.texel_record[row, col][0], self.texel_record[row, col][1] = gravity[row, col][0], gravity[row, col][1]
+
+    @ti.kernel
+    def _locate_all(self, n: ti.i32):
+        for i in range(n):
+            self._locate(i)
 
     @property
     def rest_density(self) -> float:
@@ -226,6 +242,7 @@ class Bleeding:
         self.counters[0] = count
         self.count = count
         self.alive_count[None] = count
+        self._locate_all(count)
 
     @ti.kernel
     def _spawn(self, first: ti.i32, count: ti.i32, first_uid: ti.i32, row: ti.i32, col: ti.i32, radius_mm: ti.f32):
@@ -233,7 +250,7 @@ class Bleeding:
             i = first + k
             uid = first_uid + k
             ex, ey = self.texel_ex[row, col], self.texel_ey[row, col]
-            m = self.texel_metric[row, col]
+            m = self._record_metric(self.texel_record[row, col])
             e1 = ex.normalized()
             e2 = (ey - ey.dot(e1) * e1).normalized()
             angle = 2.0 * math.pi * hash01(ti.u32(uid), ti.u32(1))
@@ -250,6 +267,7 @@ class Bleeding:
             self.clot[i] = 0.0
             self.uid[i] = uid
             self.fate[i] = ALIVE
+            self._locate(i)
         self.alive_count[None] = first + count
 
     # --- the step -----------------------------------------------------------------------------
@@ -326,10 +344,23 @@ class Bleeding:
         texture or on a masked texel."""
         col = ti.cast(ti.floor(x[0]), ti.i32)
         row = ti.cast(ti.floor(x[1]), ti.i32)
-        inside = 0
-        if 0 <= col < self.width and 0 <= row < self.height:
-            inside = self.mask[row, col]
-        return ti.min(ti.max(row, 0), self.height - 1), ti.min(ti.max(col, 0), self.width - 1), inside
+        on_texture = (0 <= col < self.width) & (0 <= row < self.height)
+        row, col = ti.min(ti.max(row, 0), self.height - 1), ti.min(ti.max(col, 0), self.width - 1)
+        return row, col, ti.cast(on_texture & (self.texel_record[row, col][5] > 0.0), ti.i32)
+
+    @ti.func
+    def _record_metric(self, record):
+        return ti.Vector([record[2], record[3], record[4]])
+
+    @ti.func
+    def _locate(self, i):
+        """Particle i's metric and gravity from the texel at its position (one record read); 1 if that texel is
+        valid, 0 if it is masked or off the texture."""
+        row, col, inside = self._texel(self.pos[i])
+        record = self.texel_record[row, col]
+        self.metric[i] = self._record_metric(record)
+        self.gravity[i] = ti.Vector([record[0], record[1]])
+        return inside
 
     @ti.func
     def _keep_inside(self, x):
@@ -358,8 +389,7 @@ class Bleeding:
         """Gravity with film drag (exact), advance; particles off the surface or too old leave."""
         for i in range(n):
             if i < self.alive_count[None] and self.fate[i] == ALIVE:
-                row, col, _ = self._texel(self.pos[i])
-                g = self.texel_gravity[row, col]
+                g = self.gravity[i]
                 rho = self.density[i][0]
                 if pinning > 0.0:
                     g *= ti.min(rho / pinning, 1.0)
@@ -378,8 +408,7 @@ class Bleeding:
                 if ti.static(self.walls):
                     self.pos[i] = self._keep_inside(self.pos[i])
                 self.age[i] += dt
-                _, _, inside = self._texel(self.pos[i])
-                if not inside:
+                if not self._locate(i):
                     self.fate[i] = LEFT_SURFACE
                 elif self.age[i] > lifetime:
                     self.fate[i] = EXPIRED
@@ -423,7 +452,9 @@ class Bleeding:
                 self.vel_new[s] = self.vel[i]
                 self.back_v2[0, s] = self.pos_prev[i]
                 self.back_v2[1, s] = self.density[i]
-                self.back_f3[s] = ti.Vector([self.age[i], self.clot[i], self.drag[i]])
+                self.back_v2[2, s] = self.gravity[i]
+                self.back_f3[0, s] = ti.Vector([self.age[i], self.clot[i], self.drag[i]])
+                self.back_f3[1, s] = self.metric[i]
                 self.back_i2[s] = ti.Vector([self.uid[i], self.cell[i]])
         for s in range(n):
             if s < self.alive_count[None]:
@@ -431,12 +462,12 @@ class Bleeding:
                 self.vel[s] = self.vel_new[s]
                 self.pos_prev[s] = self.back_v2[0, s]
                 self.density[s] = self.back_v2[1, s]
-                back_f, back_i = self.back_f3[s], self.back_i2[s]
+                self.gravity[s] = self.back_v2[2, s]
+                self.metric[s] = self.back_f3[1, s]
+                back_f, back_i = self.back_f3[0, s], self.back_i2[s]
                 self.age[s], self.clot[s], self.drag[s] = back_f[0], back_f[1], back_f[2]
                 self.uid[s], self.cell[s] = back_i[0], back_i[1]
                 self.fate[s] = ALIVE
-                row, col, _ = self._texel(self.pos[s])
-                self.metric[s] = self.texel_metric[row, col]
 
     @ti.func
     def _candidates(self, i):
@@ -544,8 +575,7 @@ class Bleeding:
                 self.vel[i] = v
                 if speed < rest_speed:
                     self.clot[i] = ti.min(self.clot[i] + clotting * dt, 1.0)
-                _, _, inside = self._texel(self.pos[i])
-                if not inside:
+                if not self._locate(i):
                     self.fate[i] = LEFT_SURFACE
 
     @ti.func
@@ -577,8 +607,7 @@ class Bleeding:
                             pushes = (self.fate[j] == ALIVE) & (r > 1e-6 * h) & (q > 0.0) & (u > 0.0)
                             v -= ti.select(pushes, 0.5 * ti.min(impulse, u) * inv_r, 0.0) * d
                 if self.fate[i] == ALIVE:
-                    row, col, _ = self._texel(self.pos[i])
-                    v, _ = self._clamp_speed(v, self.texel_metric[row, col], max_speed)
+                    v, _ = self._clamp_speed(v, self.metric[i], max_speed)
                 self.vel_new[i] = v
         for i in range(n):
             if i < self.alive_count[None]:

@@ -293,6 +293,10 @@ class _TileGeometry:
     def crop(self, image: np.ndarray) -> np.ndarray:
         return image[self.r0:self.r1, self.c0:self.c1]
 
+    def blocks(self, block: int) -> tuple[slice, slice]:
+        """(rows, cols) slices of the block x block texel blocks this crop meets."""
+        return slice(self.r0 // block, -(-self.r1 // block)), slice(self.c0 // block, -(-self.c1 // block))
+
     def glb(self, images) -> bytes:
         """The tile's GLB with these encoded maps: [(bytes, mime)], one per map in self.maps order."""
         doc = self._json
@@ -624,7 +628,7 @@ class TextureStream:
                 return None
             for index, tile in enumerate(self._tiles):
                 box = tile.geometry
-                if flags[box.r0 // block:-(-box.r1 // block), box.c0 // block:-(-box.c1 // block)].any():
+                if flags[box.blocks(block)].any():
                     self._candidates.add(index)
                     tile.seen_change = None  # its maps change again since it was examined: how much is not known
             now = self.clock()
@@ -638,7 +642,7 @@ class TextureStream:
             wanted = np.zeros_like(flags)
             for index in self._examined:
                 box = self._tiles[index].geometry
-                wanted[box.r0 // block:-(-box.r1 // block), box.c0 // block:-(-box.c1 // block)] = True
+                wanted[box.blocks(block)] = True
             return block, wanted
 
     def close(self) -> None:
@@ -679,7 +683,7 @@ class TextureStream:
             return
         for index, tile in enumerate(self._tiles):
             box = tile.geometry
-            if flags[box.r0 // block:-(-box.r1 // block), box.c0 // block:-(-box.c1 // block)].any():
+            if flags[box.blocks(block)].any():
                 self._candidates.add(index)
 
     def _publish(self, maps: dict, now: float) -> dict:

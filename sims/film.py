@@ -122,7 +122,7 @@ class BloodFilm(GridReader):
         self.has_clot = self.clot_live is not None
         # the clot fraction the look shows (advance: within CLOT_STEP of the live one)
         self.clot = ti.field(ti.f32, shape) if self.has_clot else None
-        self.fresh = ti.field(ti.f32, shape)
+        self.fresh = None if self.reads_method else ti.field(ti.f32, shape)  # this step's film (mm)
         self.trail = ti.field(ti.f32, shape)  # mm
         self.stain = ti.field(ti.f32, shape)  # mm
         self.near = ti.field(ti.i32, shape)   # 1: the trail is not zero within NEAR_TEXELS of this texel (take_near)
@@ -152,7 +152,7 @@ class BloodFilm(GridReader):
 
     @ti.kernel
     def _keep(self, decay: ti.f32):
-        for r, c in self.fresh:
+        for r, c in self.trail:
             fresh = 0.0
             if ti.static(self.reads_method):
                 fresh = self.bleeding.film_depth(r, c)

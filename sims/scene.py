@@ -534,7 +534,9 @@ class Scene:
         if texel is None:
             _, index = self._texel_tree.query(key)
             texel = tuple(int(v) for v in self._texels[index])
-            self._nearest = {key: texel} if len(self._nearest) >= NEAR_CACHE else {**self._nearest, key: texel}
+            if len(self._nearest) >= NEAR_CACHE:
+                self._nearest.clear()
+            self._nearest[key] = texel
         return texel
 
     def coagulated_fraction(self, texel_rc) -> float:

@@ -7,22 +7,22 @@ spacing, interaction radius, speeds and gravity are in millimetres whatever the 
 - gravity in grid units a = G^-1 J^T g (the tangential part of g, exactly g sin(theta) on an incline);
 - a physical displacement of length s along a pair becomes s / r * d in the grid.
 
-One step (substepped): gravity with Nusselt film drag (exact exponential), advance, sort, density and near
-density, double density relaxation (its displacement damped by the same drag, so pressure and gravity balance
-alike at any substep count), velocity from displacement (inertia factor I, speed clamp), clotting, viscosity
-impulses (sigma, beta); after the substeps, suction and a last sort. The sort (a stable counting sort by cell) moves
-the alive particles to the front of the pool in cell order and counts and drops the others, so a particle's
-candidates are three contiguous runs of the pool (the rows of its 3 x (2 CELL_COLUMNS + 1) cells). The density,
-relaxation and viscosity passes walk the three runs side by side without a branch (a pair out of range weighs exactly
-0), in whole vectors of LANES candidates: a CPU computes LANES pairs per instruction, and the three runs are three
-independent chains in one loop (1.2 times faster than one loop per run, whose 3-4 vectors were latency-bound). Every kernel gathers from neighbours and
-writes only its own particle; the sort's prefix sum and scatter run serially (a few per cent of the step on a CPU), so
-results are bitwise identical across runs and thread counts. A substep's passes are one launch (_passes): on a CPU
-a launch from Python costs 25-45 us, a third of a 1,000-particle step when each pass was its own. Kernels loop over
-the pool's count at the start of the step and skip past the device's alive_count: the host reads the count back once
-per step. Work per particle is capped (MAX_CANDIDATES examined, the first in cell order), so dense clumps cost
-bounded time. A particle carries its texel's metric and gravity, read again (one 32-byte record) only where it moves:
-after the advance and after the relaxation; the sort moves them with the particle.
+One step (substepped): gravity with Nusselt film drag (exact exponential), advance, sort, density and near density,
+double density relaxation (its displacement damped by the same drag, so pressure and gravity balance alike at any
+substep count), velocity from displacement (inertia factor I, speed clamp), clotting, viscosity impulses (sigma,
+beta); after the substeps, suction and a last sort. The sort (a stable counting sort by cell) moves the alive
+particles to the front of the pool in cell order and counts and drops the others, so a particle's candidates are
+three contiguous runs of the pool (the rows of its 3 x (2 CELL_COLUMNS + 1) cells). The density, relaxation and
+viscosity passes walk the three runs side by side without a branch (a pair out of range weighs exactly 0), in whole
+vectors of LANES candidates: a CPU computes LANES pairs per instruction, and the three runs are three independent
+chains in one loop (1.2 times faster than one loop per run, whose 3-4 vectors were latency-bound). Every kernel
+gathers from neighbours and writes only its own particle; the sort's prefix sum and scatter run serially (a few per
+cent of the step on a CPU), so results are bitwise identical across runs and thread counts. A substep's passes are
+one launch (_passes): on a CPU a launch from Python costs 25-45 us, a third of a 1,000-particle step when each pass
+was its own. Kernels loop over the pool's count at the start of the step and skip past the device's alive_count: the
+host reads the count back once per step. Work per particle is capped (MAX_CANDIDATES examined, the first in cell
+order), so dense clumps cost bounded time. A particle carries its texel's metric and gravity, read again (one 32-byte
+record) only where it moves: after the advance and after the relaxation; the sort moves them with the particle.
 
 Accounting: spawned = alive + suctioned + left_surface + expired, exactly, at every step.
 

@@ -626,11 +626,7 @@ class TextureStream:
             if self._closed or self._shape is None or flags.shape != tuple(-(-size // block) for size in self._shape[0]):
                 self._examined = None
                 return None
-            for index, tile in enumerate(self._tiles):
-                box = tile.geometry
-                if flags[box.blocks(block)].any():
-                    self._candidates.add(index)
-                    tile.seen_change = None  # its maps change again since it was examined: how much is not known
+            self._mark_candidates((block, flags))
             now = self.clock()
             self._refill(now)
             fresh = [index for index in self._candidates if self._tiles[index].sent is None]
@@ -673,18 +669,21 @@ class TextureStream:
             tile.sent, tile.encoded, tile.glb, tile.version, tile.seen_change, tile.examined_at = None, None, None, -1, None, -1.0
 
     def _mark_candidates(self, changed: tuple[int, np.ndarray] | None) -> None:
-        """Add the tiles whose crops meet a block flagged in changed (all tiles for None) to the candidates."""
+        """Add the tiles whose crops meet a block flagged in changed (all tiles for None) to the candidates; their
+        maps change again since they were examined, so how much they changed is no longer known (seen_change)."""
         if changed is None:
             self._candidates.update(range(len(self._tiles)))
+            for tile in self._tiles:
+                tile.seen_change = None
             return
         block, flags = changed
         flags = np.asarray(flags, bool)
         if not flags.any():
             return
         for index, tile in enumerate(self._tiles):
-            box = tile.geometry
-            if flags[box.blocks(block)].any():
+            if flags[tile.geometry.blocks(block)].any():
                 self._candidates.add(index)
+                tile.seen_change = None
 
     def _publish(self, maps: dict, now: float) -> dict:
         """Encode the changed tiles, most urgent first, within the token bucket (a tile's first version is free); of a

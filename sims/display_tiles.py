@@ -52,6 +52,12 @@ def _grow(flags: np.ndarray, rows: int, cols: int) -> np.ndarray:
                    for dr in range(-rows, rows + 1) for dc in range(-cols, cols + 1)], axis=0)
 
 
+def _bits(tissue, sample, rows, columns, write, normal) -> np.ndarray:
+    """(tiles,) int32 flags from one bool array per pass (any shape holding the tiles in row-major order)."""
+    return (TISSUE * np.ravel(tissue) + BLOOD_SAMPLE * np.ravel(sample) + BLOOD_ROWS * np.ravel(rows)
+            + BLOOD_COLUMNS * np.ravel(columns) + WRITE * np.ravel(write) + NORMAL * np.ravel(normal)).astype(np.int32)
+
+
 @ti.data_oriented
 class DisplayTiles:
     """The display grid's tiles and what each reads (module docstring); `flags`, `written` and `listed` after plan()."""
@@ -95,8 +101,7 @@ class DisplayTiles:
         columns = _grow(rows, self.blood_reach, 0)                   # the pass along columns up and down
         write = tissue.reshape(self.grid) | columns
         normal = (self.fill_reads.T @ _grow(write, 1, 1).ravel().astype(np.int32)) > 0
-        self._pending |= (TISSUE * tissue + BLOOD_SAMPLE * blood + BLOOD_ROWS * rows.ravel() + BLOOD_COLUMNS * columns.ravel()
-                          + WRITE * write.ravel() + NORMAL * normal).astype(np.int32)
+        self._pending |= _bits(tissue, blood, rows, columns, write, normal)
 
     def select_all(self) -> int:
         """Flag every tile for everything (a full pass). Returns how many tiles are written."""
@@ -129,8 +134,7 @@ class DisplayTiles:
             columns = write & ((pending & BLOOD_COLUMNS) != 0)
             rows = _grow(columns.reshape(self.grid), self.blood_reach, 0).ravel() & ((pending & BLOOD_ROWS) != 0)
             sample = _grow(rows.reshape(self.grid), 0, self.blood_reach).ravel() & ((pending & BLOOD_SAMPLE) != 0)
-            flags = (TISSUE * tissue + BLOOD_SAMPLE * sample + BLOOD_ROWS * rows + BLOOD_COLUMNS * columns
-                     + WRITE * write + NORMAL * normal).astype(np.int32)
+            flags = _bits(tissue, sample, rows, columns, write, normal)
         self._pending = pending & ~flags
         return self._set(flags)
 

@@ -38,7 +38,7 @@ import math
 import numpy as np
 import taichi as ti
 
-from sims import layers
+from sims import backend, layers
 from sims.seams import seam_links
 from sims.tiles import TILE, WAKE_HALO_TEXELS, TileSchedule, tile_spheres
 
@@ -420,12 +420,13 @@ class Cautery:
             self.last_iterations = count
             return  # nothing was awake and nothing can wake a tile: an idle lab costs no kernel
         if self.instruments.any_energized or self._tools_were_near:
-            self._want_near_tools(reach, min(TOOL_DEPTH, self.layer_count))
+            self._want_near_tools(self.tiles.serial, reach, min(TOOL_DEPTH, self.layer_count))
             self._tools_were_near = self.instruments.any_energized
         awake = self.tiles.plan(math.ceil(max(count, WAKE_HALO_TEXELS) / TILE), SPARE_LAYERS, wake_all)
         self._wake_all = False
         if self.tiles.fell_asleep:  # their latest values into the other buffer too (they are not stepped now)
-            self._copy_sleeping(self.current, 1 - self.current, self.tiles.fell_asleep)
+            asleep = self.tiles.fell_asleep
+            self._copy_sleeping(backend.serial(asleep * TILE * TILE), self.current, 1 - self.current, asleep)
         self.last_iterations = count
         if awake == 0:
             return
@@ -471,8 +472,9 @@ class Cautery:
         self.last_iterations, self.last_residual = total, worst
 
     @ti.kernel
-    def _want_near_tools(self, reach: ti.f32, depth: ti.i32):
+    def _want_near_tools(self, serial: ti.template(), reach: ti.f32, depth: ti.i32):
         """Tiles within reach of an energized tool ask for `depth` layers and are marked in tile_near."""
+        ti.loop_config(serialize=serial)
         for t in range(self.tiles.tiles):
             near = 0
             if self.tile_radius[t] >= 0.0:
@@ -508,7 +510,8 @@ class Cautery:
         return total, target
 
     @ti.kernel
-    def _copy_sleeping(self, src: ti.i32, dst: ti.i32, count: ti.i32):
+    def _copy_sleeping(self, serial: ti.template(), src: ti.i32, dst: ti.i32, count: ti.i32):
+        ti.loop_config(serialize=serial)
         for i, j in ti.ndrange(count, TILE * TILE):
             tile, r, c, inside = self.tiles.texel_of(self.tiles.asleep[i], j)
             if inside:

@@ -19,6 +19,7 @@ import math
 import numpy as np
 import taichi as ti
 
+from sims import backend
 from sims.resample import GridReader
 
 SPLAT_SCALE = 1024  # fixed-point units of one particle in the splat grid (integer atomics: deterministic)
@@ -124,6 +125,7 @@ class BloodFilm(GridReader):
         self.clot = ti.field(ti.f32, shape) if self.has_clot else None
         self.fresh = None if self.reads_method else ti.field(ti.f32, shape)  # this step's film (mm)
         self.trail = ti.field(ti.f32, shape)  # mm
+        self.serial = backend.serial(shape[0] * shape[1])  # _keep on the launching thread (a coarse grid's film)
         self.stain = ti.field(ti.f32, shape)  # mm
         self.near = ti.field(ti.i32, shape)   # 1: the trail is not zero within NEAR_TEXELS of this texel (take_near)
         self.tile = max(NEAR_TEXELS, round(DISPLAY_TEXELS_PER_TILE / self.display_per_texel))  # film texels a side
@@ -148,11 +150,12 @@ class BloodFilm(GridReader):
             return
         if not self.reads_method:
             self.bleeding.fresh_film(self.fresh)
-        self._keep(math.exp(-dt_s / trail_s) if trail_s > 0 else 0.0)
+        self._keep(self.serial, math.exp(-dt_s / trail_s) if trail_s > 0 else 0.0)
 
     @ti.kernel
-    def _keep(self, decay: ti.f32):
-        for r, c in self.trail:
+    def _keep(self, serial: ti.template(), decay: ti.f32):
+        ti.loop_config(serialize=serial)
+        for r, c in ti.ndrange(*self.trail.shape):  # a range, not a struct for: that one cannot be serial
             fresh = 0.0
             if ti.static(self.reads_method):
                 fresh = self.bleeding.film_depth(r, c)

@@ -70,6 +70,7 @@ import math
 import numpy as np
 import taichi as ti
 
+from sims import backend
 from sims.cautery import NEIGHBOURS, direction_coefficients, edge_weights
 from sims.hashing import hash01
 from sims.seams import TOLERANCE as SEAM_TOLERANCE
@@ -278,12 +279,12 @@ class HeightFieldBleeding:
         row, col = (int(v) for v in (texel_rc if self.display is None else self.display.coarse_texel(texel_rc)))
         self._touched = True
         reach = min(int(math.ceil(radius_mm / self._min_side_mm)) + 1, max(self.height, self.width))
-        disk = (row, col, float(radius_mm))
+        disk, serial = (row, col, float(radius_mm)), backend.serial((2 * reach + 1) ** 2)
         area = self._disks.get(disk)
         if area is None:
-            area = float(self._disk_area(row, col, float(radius_mm), reach))
+            area = float(self._disk_area(serial, row, col, float(radius_mm), reach))
             self._disks = {disk: area} if len(self._disks) > 64 else {**self._disks, disk: area}
-        added, refused = (int(v) for v in self._disk_add(row, col, float(radius_mm), reach, whole / max(area, 1e-30)))
+        added, refused = (int(v) for v in self._disk_add(serial, row, col, float(radius_mm), reach, whole / max(area, 1e-30)))
         self.sources["spawned"] += added
         self.sources["dropped_too_deep"] += refused
         self._spawn_budget[key] = budget - added - refused  # the rounding short of `whole` carries over
@@ -300,19 +301,21 @@ class HeightFieldBleeding:
         return inside
 
     @ti.kernel
-    def _disk_area(self, row: ti.i32, col: ti.i32, radius: ti.f32, reach: ti.i32) -> ti.f32:
+    def _disk_area(self, serial: ti.template(), row: ti.i32, col: ti.i32, radius: ti.f32, reach: ti.i32) -> ti.f32:
         """The area (mm^2) of the disk's texels."""
         total = 0.0
+        ti.loop_config(serialize=serial)
         for dr, dc in ti.ndrange((-reach, reach + 1), (-reach, reach + 1)):
             if self._in_disk(row, col, dr, dc, radius):
                 total += self.area[row + dr, col + dc]
         return total
 
     @ti.kernel
-    def _disk_add(self, row: ti.i32, col: ti.i32, radius: ti.f32, reach: ti.i32, units_per_mm2: ti.f32) -> ti.types.vector(2, ti.i32):
+    def _disk_add(self, serial: ti.template(), row: ti.i32, col: ti.i32, radius: ti.f32, reach: ti.i32, units_per_mm2: ti.f32) -> ti.types.vector(2, ti.i32):
         """Put units_per_mm2 * area into each texel of the disk as the coming step's source, up to its capacity:
         (units added, units refused), returned (no separate read back)."""
         added, refused = 0, 0
+        ti.loop_config(serialize=serial)
         for dr, dc in ti.ndrange((-reach, reach + 1), (-reach, reach + 1)):
             if self._in_disk(row, col, dr, dc, radius):
                 r, c = row + dr, col + dc
@@ -352,19 +355,19 @@ class HeightFieldBleeding:
         awake = self.tiles.plan(-(-n // TILE), 0, False)
         self.last_substeps = n if awake else 0
         if awake:
+            serial = backend.serial(awake * TILE * TILE)
             sub = dt_s / n
             clot_keep = math.exp(-p["clotting_rate_1_s"] * sub)
             for k in range(n):
-                self._substep(awake, sub, nu, p["pinning_depth_mm"], p["rest_speed_mm_s"], clot_keep, self._substep_count, k, n)
+                self._substep(serial, awake, sub, nu, p["pinning_depth_mm"], p["rest_speed_mm_s"], clot_keep, self._substep_count, k, n)
                 self._substep_count += 1
             tools = [tool for tool in suction if tool[2] > 0][:MAX_SUCTION_TOOLS]
-            if tools:  # one upload and one launch: the fraction each tool takes is worked out on the device
+            if tools:  # one launch takes the tools and works out the fraction each takes, on the device
                 data = np.zeros((MAX_SUCTION_TOOLS, 5), np.float32)
                 for index, (position, radius, rate) in enumerate(tools):
                     data[index] = [*np.asarray(position, np.float64), radius, rate * dt_s * 1000.0]
-                self.tools.from_numpy(data)
-                self._suction_sum(awake, len(tools))
-            self._sinks(awake, len(tools), 1.0 - math.exp(-dt_s / p["lifetime_s"]), self.step_index, dt_s, nu)
+                self._suction_sum(serial, awake, len(tools), data)
+            self._sinks(serial, awake, len(tools), 1.0 - math.exp(-dt_s / p["lifetime_s"]), self.step_index, dt_s, nu)
         self.step_index += 1
 
     @property
@@ -401,17 +404,18 @@ class HeightFieldBleeding:
         return ti.min(ti.max(un, -bound), bound)
 
     @ti.kernel
-    def _substep(self, n: ti.i32, dt: ti.f32, nu: ti.f32, pin: ti.f32, rest_speed: ti.f32, clot_keep: ti.f32, seed: ti.i32,
+    def _substep(self, serial: ti.template(), n: ti.i32, dt: ti.f32, nu: ti.f32, pin: ti.f32, rest_speed: ti.f32, clot_keep: ti.f32, seed: ti.i32,
                  k: ti.i32, substeps: ti.i32):
         """Substep k of `substeps` of the n awake tiles, in one launch (its loops run one after the other): the step's
         _momentum, _limit, _transfer."""
-        self._momentum(n, dt, nu, pin)
-        self._limit(n, dt, rest_speed, clot_keep)
-        self._transfer(n, seed, k, substeps)
+        self._momentum(serial, n, dt, nu, pin)
+        self._limit(serial, n, dt, rest_speed, clot_keep)
+        self._transfer(serial, n, seed, k, substeps)
 
     @ti.func
-    def _momentum(self, n, dt, nu, pin):
+    def _momentum(self, serial: ti.template(), n, dt, nu, pin):
         """New velocities (buffer 1) of the pipes each texel owns, from buffer 0; then copied back (below)."""
+        ti.loop_config(serialize=serial)
         for i, j in ti.ndrange(n, TILE * TILE):
             t, r, c, inside = self.tiles.texel(i, j)
             if inside and self.mask[r, c]:
@@ -465,8 +469,9 @@ class HeightFieldBleeding:
                         self.link_u[1, m] = self._finish(self.link_u[0, m] + dt * dphi / length, length, h, h_other, dt, nu, pin, False)
 
     @ti.func
-    def _limit(self, n, dt, rest_speed, clot_keep):
+    def _limit(self, serial: ti.template(), n, dt, rest_speed, clot_keep):
         """Per texel from the new velocities (buffer 1): the outflow scale (give), clot dilution and growth."""
+        ti.loop_config(serialize=serial)
         for i, j in ti.ndrange(n, TILE * TILE):
             t, r, c, inside = self.tiles.texel(i, j)
             if inside and self.mask[r, c]:
@@ -533,12 +538,13 @@ class HeightFieldBleeding:
         return amount
 
     @ti.func
-    def _transfer(self, n, seed, k, substeps):
+    def _transfer(self, serial: ti.template(), n, seed, k, substeps):
         """Integer units through every pipe between awake texels, donor to receiver, each texel adding up its own
         pipes (gathered: the owner and the other end compute the same units, so exact and order independent without
         atomics); the owner keeps in buffer 0 its pipe's velocity times the donor's limiter (what really flowed, Mei
         et al.), so it cannot grow where nothing moves. Substep k of `substeps` adds its share of the step's sources
         (the same integer share each, the remainder in the first substeps: exact)."""
+        ti.loop_config(serialize=serial)
         for i, j in ti.ndrange(n, TILE * TILE):
             t, r, c, inside = self.tiles.texel(i, j)
             if inside and self.mask[r, c]:
@@ -608,16 +614,21 @@ class HeightFieldBleeding:
         return found
 
     @ti.kernel
-    def _suction_sum(self, n: ti.i32, tools: ti.i32):
-        """The fraction of the blood within each tool's reach that it takes this step (at most all of it)."""
+    def _suction_sum(self, serial: ti.template(), n: ti.i32, tools: ti.i32, data: ti.types.ndarray(dtype=ti.f32, ndim=2)):
+        """The tools (data: MAX_SUCTION_TOOLS rows of x, y, z, radius (mm), mm^3 to take), then the fraction of the
+        blood within each tool's reach that it takes this step (at most all of it)."""
+        ti.loop_config(serialize=serial)
         for k in range(MAX_SUCTION_TOOLS):
+            self.tools[k] = ti.Vector([data[k, 0], data[k, 1], data[k, 2], data[k, 3], data[k, 4]])
             self.tool_units[k] = 0
+        ti.loop_config(serialize=serial)
         for i, j in ti.ndrange(n, TILE * TILE):
             t, r, c, inside = self.tiles.texel(i, j)
             if inside and self.mask[r, c] and self.volume[r, c] > 0:
                 k = self._tool_of(r, c, tools)
                 if k >= 0:
                     self.tool_units[k] += ti.cast(self.volume[r, c], ti.i64)
+        ti.loop_config(serialize=serial)
         for k in range(tools):
             within_mm3 = ti.cast(self.tool_units[k], ti.f32) * self.unit_mm3
             self.tool_fraction[k] = 0.0
@@ -625,11 +636,12 @@ class HeightFieldBleeding:
                 self.tool_fraction[k] = ti.min(1.0, self.tools[k][4] / within_mm3)
 
     @ti.kernel
-    def _sinks(self, n: ti.i32, tools: ti.i32, dry_fraction: ti.f32, step: ti.i32, dt: ti.f32, nu: ti.f32):
+    def _sinks(self, serial: ti.template(), n: ti.i32, tools: ti.i32, dry_fraction: ti.f32, step: ti.i32, dt: ti.f32, nu: ti.f32):
         """Suction (fraction of the volume within a tool's reach), then drying; then for the next step: tiles holding
         blood or flow are hot, the stain, and the largest speed that sets the substeps (stats[0]): over the wet
         texels, the larger of the flow's |u| + g_t min(dt, h^2 / 3 nu) and the waves' sqrt(g_n h). Last, the step's
         counts go into sink_totals and are zeroed."""
+        ti.loop_config(serialize=serial)
         for i, j in ti.ndrange(n, TILE * TILE):
             t, r, c, inside = self.tiles.texel(i, j)
             if inside and self.mask[r, c]:
@@ -660,6 +672,7 @@ class HeightFieldBleeding:
                     if nu > 0.0:
                         reach = ti.min(dt, h * h / (3.0 * nu))
                     ti.atomic_max(self.stats[0], ti.max(umax + self.gt[r, c] * reach, ti.sqrt(self.gn[r, c] * h)))
+        ti.loop_config(serialize=serial)
         for q in range(3):  # the step's per-tile counts into the totals, on the device (no read back per step)
             total = ti.cast(0, ti.i64)
             for t in range(self.counts.shape[0]):

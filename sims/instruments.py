@@ -290,7 +290,9 @@ class InstrumentFields:
 
     @ti.kernel
     def _upload(self, packed: ti.types.ndarray()):
-        """packed (count, POSE_WIDTH): position (3), rotation rows (9), tip temperature, energized."""
+        """packed (count, POSE_WIDTH): position (3), rotation rows (9), tip temperature, energized. A handful of
+        instruments: on the launching thread (a parallel loop's start costs more, sims.backend.serial)."""
+        ti.loop_config(serialize=True)
         for k in range(packed.shape[0]):
             for i in ti.static(range(3)):
                 self.position[k][i] = packed[k, i]

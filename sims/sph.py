@@ -40,6 +40,7 @@ import numpy as np
 import taichi as ti
 from taichi.lang.util import to_numpy_type
 
+from sims import backend
 from sims.film import ParticleSplat
 from sims.hashing import hash01
 
@@ -50,6 +51,9 @@ CELL_COLUMNS = 4            # neighbour cells are h tall and h / CELL_COLUMNS wi
                             # (2 + 1 / CELL_COLUMNS) h, not 3 h (25 % fewer candidates, runs still long)
 LANES = 8                   # candidate runs are walked in whole multiples of this (one AVX2 vector of f32)
 MAX_SUCTION_TOOLS = 8
+LIGHT_LOOP_ITEMS = 4        # a particle weighs this many work items of backend.serial in the light loops (advance, sort,
+                            # finish, the copies): they run on the launching thread below about 2,000 particles, where
+                            # waking the thread pool costs more (1,000 particles: 2.8 -> 2.2 ms per step, measured)
 MAX_RELAX_FRACTION = 0.5    # largest relaxation displacement per substep, in interaction radii
 WALL_MARGIN = 1e-3          # walls keep particles this far (texels) inside the border of a valid texel
 KEYS = ("spawned", "suctioned", "left_surface", "expired", "dropped_pool_full")
@@ -284,35 +288,38 @@ class Bleeding:
             sub = dt_s / substeps
             nu = p["blood_viscosity_mpa_s"] * 1e-3 / p["blood_density_kg_m3"] * 1e6  # mm^2/s
             rest = self.rest_density
+            light_serial = backend.serial(LIGHT_LOOP_ITEMS * n)
             values = (n, sub, size[0], size[1], h, nu, p["film_thickness_mm"], rest, p["pinning_density"] * rest,
                       p["lifetime_s"], p["stiffness_mm_s2"], p["near_stiffness_mm_s2"], p["inertia"], p["max_speed_mm_s"],
                       p["clotting_rate_1_s"], p["rest_speed_mm_s"], p["viscosity_sigma_1_s"], p["viscosity_beta_s_mm"])
             for _ in range(substeps):
                 for passes in PASS_NAMES if self.separate_passes else (SUBSTEP,):
-                    self._passes(passes, *values)
+                    self._passes(passes, light_serial, *values)
             self._apply_suction(dt_s, suction)
-            self._passes(SORT, *values)  # drops those that left in the last substep or to suction
+            self._passes(SORT, light_serial, *values)  # drops those that left in the last substep or to suction
             self.count = int(self.alive_count[None])
         self.step_index += 1
 
     @ti.kernel
-    def _passes(self, passes: ti.template(), n: ti.i32, dt: ti.f32, size_x: ti.f32, size_y: ti.f32, h: ti.f32, nu: ti.f32,
-                film: ti.f32, rest: ti.f32, pinning: ti.f32, lifetime: ti.f32, k: ti.f32, k_near: ti.f32, inertia: ti.f32,
-                max_speed: ti.f32, clotting: ti.f32, rest_speed: ti.f32, sigma: ti.f32, beta: ti.f32):
+    def _passes(self, passes: ti.template(), light_serial: ti.template(), n: ti.i32, dt: ti.f32, size_x: ti.f32,
+                size_y: ti.f32, h: ti.f32, nu: ti.f32, film: ti.f32, rest: ti.f32, pinning: ti.f32, lifetime: ti.f32, k: ti.f32,
+                k_near: ti.f32, inertia: ti.f32, max_speed: ti.f32, clotting: ti.f32, rest_speed: ti.f32, sigma: ti.f32,
+                beta: ti.f32):
         """The passes in `passes` (bits PREDICT ... VISCOSITY), in the order of a substep, in one launch: each pass's
-        loops run one after the other, as separate kernels would, at one launch from Python instead of six."""
+        loops run one after the other, as separate kernels would, at one launch from Python instead of six. light_serial:
+        the loops other than the three pair walks run on the launching thread (small pools, LIGHT_LOOP_ITEMS)."""
         if ti.static(passes & PREDICT):
-            self._predict(n, dt, nu, film, rest, pinning, lifetime)
+            self._predict(light_serial, n, dt, nu, film, rest, pinning, lifetime)
         if ti.static(passes & SORT):
-            self._sort(n, size_x, size_y)
+            self._sort(light_serial, n, size_x, size_y)
         if ti.static(passes & DENSITY):
             self._density_pass(n, h, rest, k, k_near)
         if ti.static(passes & RELAX):
             self._relax(n, dt, h)
         if ti.static(passes & FINISH):
-            self._finish(n, dt, inertia, max_speed, clotting, rest_speed)
+            self._finish(light_serial, n, dt, inertia, max_speed, clotting, rest_speed)
         if ti.static(passes & VISCOSITY):
-            self._viscosity(n, dt, h, sigma, beta, max_speed)
+            self._viscosity(light_serial, n, dt, h, sigma, beta, max_speed)
 
     def _cell_size_for(self, radius_mm: float):
         """Cells never shrink below the size the grid was allocated for (a smaller radius stays correct)."""
@@ -385,8 +392,9 @@ class Bleeding:
         return result
 
     @ti.func
-    def _predict(self, n, dt, nu, film, rest, pinning, lifetime):
+    def _predict(self, serial: ti.template(), n, dt, nu, film, rest, pinning, lifetime):
         """Gravity with film drag (exact), advance; particles off the surface or too old leave."""
+        ti.loop_config(serialize=serial)
         for i in range(n):
             if i < self.alive_count[None] and self.fate[i] == ALIVE:
                 g = self.gravity[i]
@@ -414,11 +422,12 @@ class Bleeding:
                     self.fate[i] = EXPIRED
 
     @ti.func
-    def _sort(self, n, size_x, size_y):
+    def _sort(self, serial: ti.template(), n, size_x, size_y):
         """Alive particles in cell order at the front of the pool (neighbours sit close in memory), the others counted
         by fate and dropped: a stable counting sort (serial prefix sum and scatter, so deterministic), then a gather.
         size_x, size_y: cell size in texels."""
         cells = self.cells_x * self.cells_y
+        ti.loop_config(serialize=serial)
         for i in range(n):
             if i < self.alive_count[None]:
                 key = cells + self.fate[i] - 1
@@ -445,6 +454,7 @@ class Bleeding:
         for fate in ti.static(range(SUCTIONED, EXPIRED + 1)):  # unrolled: one serial task with the count below
             self.counters[fate] += self.cell_start[cells + fate] - self.cell_start[cells + fate - 1]
         self.alive_count[None] = self.cell_start[cells]
+        ti.loop_config(serialize=serial)
         for s in range(n):
             if s < self.alive_count[None]:
                 i = self.sorted[s]
@@ -456,6 +466,7 @@ class Bleeding:
                 self.back_f3[0, s] = ti.Vector([self.age[i], self.clot[i], self.drag[i]])
                 self.back_f3[1, s] = self.metric[i]
                 self.back_i2[s] = ti.Vector([self.uid[i], self.cell[i]])
+        ti.loop_config(serialize=serial)
         for s in range(n):
             if s < self.alive_count[None]:
                 self.pos[s] = self.pos_new[s]
@@ -562,8 +573,9 @@ class Bleeding:
                 self.pos_new[i] = xi + shift
 
     @ti.func
-    def _finish(self, n, dt, inertia, max_speed, clotting, rest_speed):
+    def _finish(self, serial: ti.template(), n, dt, inertia, max_speed, clotting, rest_speed):
         """Velocity from displacement (inertia, clamp), clotting; leaving the surface."""
+        ti.loop_config(serialize=serial)
         for i in range(n):
             if i < self.alive_count[None]:
                 start = self.pos_prev[i]
@@ -588,7 +600,7 @@ class Bleeding:
         return v, speed
 
     @ti.func
-    def _viscosity(self, n, dt, h, sigma, beta, max_speed):
+    def _viscosity(self, serial: ti.template(), n, dt, h, sigma, beta, max_speed):
         """Viscosity impulses between approaching pairs in range, gathered: v_i -= I_ij / 2; then the speed clamp."""
         for i in range(n):
             if i < self.alive_count[None]:
@@ -609,6 +621,7 @@ class Bleeding:
                 if self.fate[i] == ALIVE:
                     v, _ = self._clamp_speed(v, self.metric[i], max_speed)
                 self.vel_new[i] = v
+        ti.loop_config(serialize=serial)
         for i in range(n):
             if i < self.alive_count[None]:
                 self.vel[i] = self.vel_new[i]

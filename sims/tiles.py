@@ -17,6 +17,8 @@ look, which recomposes only those tiles (sims.display_tiles): only the damaged o
 import numpy as np
 import taichi as ti
 
+from sims import backend
+
 TILE = 8  # texels per tile side
 WAKE_HALO_TEXELS = 16  # awake texels at least this far around a hot tile: the tails of a spreading bump keep moving
 
@@ -71,6 +73,7 @@ class TileSchedule:
         self.rows, self.cols = tile_grid(mask.shape, tile)
         count = self.rows * self.cols
         self.tiles = count
+        self.serial = backend.serial(count)  # plan's loop over the tiles on the launching thread (backend.serial)
         occupied = np.array([mask[tr * tile:(tr + 1) * tile, tc * tile:(tc + 1) * tile].any()
                              for tr in range(self.rows) for tc in range(self.cols)], np.int32)
         self.occupied = ti.field(ti.i32, count)
@@ -111,13 +114,14 @@ class TileSchedule:
     def plan(self, reach_tiles: int, margin: int, wake_all: bool) -> int:
         """Decide this step's awake tiles (see the module docstring); wake_all: every tile with surface texels, at
         full depth. Returns how many are awake."""
-        counts = self._plan(int(reach_tiles), int(margin), int(wake_all))  # a returned value: no separate read back
+        counts = self._plan(self.serial, int(reach_tiles), int(margin), int(wake_all))  # a returned value: no separate read back
         self.awake, self.fell_asleep = int(counts[0]), int(counts[1])
         self._flagged = self._flagged or self.awake > 0
         return self.awake
 
     @ti.kernel
-    def _plan(self, reach: ti.i32, margin: ti.i32, wake_all: ti.i32) -> ti.types.vector(2, ti.i32):
+    def _plan(self, serial: ti.template(), reach: ti.i32, margin: ti.i32, wake_all: ti.i32) -> ti.types.vector(2, ti.i32):
+        ti.loop_config(serialize=serial)
         for t in range(self.tiles):
             tr, tc = t // self.cols, t % self.cols
             deepest = -1

@@ -259,18 +259,23 @@ def test_same_scene_twice_gives_identical_state():
 
 @pytest.mark.parametrize("method, scene, duration", [("particles", "bleeding.yaml", "0.5"), ("height_field", "bleeding.yaml", "0.5"),
                                                      ("height_field", "hemostasis.yaml", "2.6")])  # the last: with suction
-def test_identical_state_with_one_and_two_threads(tmp_path, method, scene, duration):
+def test_identical_state_with_one_and_two_threads_and_with_small_loops_serial(tmp_path, method, scene, duration):
+    """The same bytes on 1 and 2 threads with every loop parallel (TISSUE_LAB_SERIAL_BELOW=0), and with small loops on
+    the launching thread (the default, sims.backend.serial)."""
     outputs = []
-    for threads in ("1", "2"):
-        out = tmp_path / f"threads{threads}"
+    for threads, serial_below in (("1", "0"), ("2", "0"), ("2", None)):
+        out = tmp_path / f"threads{threads}_{serial_below}"
         env = {**__import__("os").environ, "TISSUE_LAB_THREADS": threads}
+        env.pop("TISSUE_LAB_SERIAL_BELOW", None)
+        if serial_below is not None:
+            env["TISSUE_LAB_SERIAL_BELOW"] = serial_below
         result = subprocess.run([sys.executable, "-m", "lab", "run", str(REPO_ROOT / "scenes" / scene), "--out", str(out),
                                  "--duration", duration, "--set", "texture_size=128", "--set", f"bleeding.method={method}",
                                  "--arch", "cpu", "--quiet"],
                                 capture_output=True, text=True, cwd=REPO_ROOT, env=env)
         assert result.returncode == 0, result.stderr
         outputs.append((out / "state.npz").read_bytes())
-    assert outputs[0] == outputs[1]
+    assert outputs[0] == outputs[1] == outputs[2]
 
 
 def surface_height(x_mm: float, y_mm: float) -> float:

@@ -8,12 +8,14 @@ spacing, interaction radius, speeds and gravity are in millimetres whatever the 
 - a physical displacement of length s along a pair becomes s / r * d in the grid.
 
 One step (substepped): gravity with Nusselt film drag (exact exponential), advance, sort, density and near density,
-double density relaxation (its displacement damped by the same drag, so pressure and gravity balance alike at any
-substep count), velocity from displacement (inertia factor I, speed clamp), clotting, viscosity impulses (sigma,
-beta); after the substeps, suction and a last sort. The sort (a stable counting sort by cell) moves the alive
+double density relaxation with Clavet's viscosity impulses (sigma, beta) in the same walk (at the advanced positions
+and velocities; the impulse becomes a displacement, as in Clavet's order, where it acts on the velocity before the
+advance; both displacements damped by the same drag, so pressure and gravity balance alike at any substep count),
+velocity from displacement (inertia factor I, speed clamp in the metric where the particle ends), clotting; after the
+substeps, suction and a last sort. The sort (a stable counting sort by cell) moves the alive
 particles to the front of the pool in cell order and counts and drops the others, so a particle's candidates are
-three contiguous runs of the pool (the rows of its 3 x (2 CELL_COLUMNS + 1) cells). The density, relaxation and
-viscosity passes walk the three runs side by side without a branch (a pair out of range weighs exactly 0), in whole
+three contiguous runs of the pool (the rows of its 3 x (2 CELL_COLUMNS + 1) cells). The density and relaxation
+passes walk the three runs side by side without a branch (a pair out of range weighs exactly 0), in whole
 vectors of LANES candidates: a CPU computes LANES pairs per instruction, and the three runs are three independent
 chains in one loop (1.2 times faster than one loop per run, whose 3-4 vectors were latency-bound). Every kernel
 gathers from neighbours and writes only its own particle; the sort's prefix sum and scatter run serially (a few per
@@ -57,9 +59,9 @@ LIGHT_LOOP_ITEMS = 4        # a particle weighs this many work items of backend.
 MAX_RELAX_FRACTION = 0.5    # largest relaxation displacement per substep, in interaction radii
 WALL_MARGIN = 1e-3          # walls keep particles this far (texels) inside the border of a valid texel
 KEYS = ("spawned", "suctioned", "left_surface", "expired", "dropped_pool_full")
-PREDICT, SORT, DENSITY, RELAX, FINISH, VISCOSITY = (1 << bit for bit in range(6))  # the passes of a substep
-SUBSTEP = PREDICT | SORT | DENSITY | RELAX | FINISH | VISCOSITY
-PASS_NAMES = {PREDICT: "predict", SORT: "sort", DENSITY: "density", RELAX: "relax", FINISH: "finish", VISCOSITY: "viscosity"}
+PREDICT, SORT, DENSITY, RELAX, FINISH = (1 << bit for bit in range(5))  # the passes of a substep
+SUBSTEP = PREDICT | SORT | DENSITY | RELAX | FINISH
+PASS_NAMES = {PREDICT: "predict", SORT: "sort", DENSITY: "density", RELAX: "relax", FINISH: "finish"}
 
 
 def lattice_density(spacing_mm: float, radius_mm: float) -> float:
@@ -305,7 +307,7 @@ class Bleeding:
                 size_y: ti.f32, h: ti.f32, nu: ti.f32, film: ti.f32, rest: ti.f32, pinning: ti.f32, lifetime: ti.f32, k: ti.f32,
                 k_near: ti.f32, inertia: ti.f32, max_speed: ti.f32, clotting: ti.f32, rest_speed: ti.f32, sigma: ti.f32,
                 beta: ti.f32):
-        """The passes in `passes` (bits PREDICT ... VISCOSITY), in the order of a substep, in one launch: each pass's
+        """The passes in `passes` (bits PREDICT ... FINISH), in the order of a substep, in one launch: each pass's
         loops run one after the other, as separate kernels would, at one launch from Python instead of six. light_serial:
         the loops other than the three pair walks run on the launching thread (small pools, LIGHT_LOOP_ITEMS)."""
         if ti.static(passes & PREDICT):
@@ -315,11 +317,9 @@ class Bleeding:
         if ti.static(passes & DENSITY):
             self._density_pass(n, h, rest, k, k_near)
         if ti.static(passes & RELAX):
-            self._relax(n, dt, h)
+            self._relax(n, dt, h, sigma, beta)
         if ti.static(passes & FINISH):
             self._finish(light_serial, n, dt, inertia, max_speed, clotting, rest_speed)
-        if ti.static(passes & VISCOSITY):
-            self._viscosity(light_serial, n, dt, h, sigma, beta, max_speed)
 
     def _cell_size_for(self, radius_mm: float):
         """Cells never shrink below the size the grid was allocated for (a smaller radius stays correct)."""
@@ -539,22 +539,28 @@ class Bleeding:
                 self.pressure[i] = ti.Vector([k * (rho - rest), k_near * rho_near])
 
     @ti.func
-    def _relax(self, n, dt, h):
-        """Double density relaxation, symmetric gather: each pair moves i by -dt^2/2 (P_i + P_j)(...) r_hat."""
+    def _relax(self, n, dt, h, sigma, beta):
+        """Double density relaxation, symmetric gather: each pair moves i by -dt^2/2 (P_i + P_j)(...) r_hat; and
+        Clavet's viscosity in the same walk: an approaching pair (speed u along r_hat) changes v_i by -min(I, u)/2 r_hat,
+        I = dt q (sigma u + beta u^2), which moves i by that times dt (one pair walk fewer than a pass of its own)."""
         for i in range(n):
             if i < self.alive_count[None]:
-                shift = ti.Vector([0.0, 0.0])
+                shift, slow = ti.Vector([0.0, 0.0]), ti.Vector([0.0, 0.0])
                 coincident = 0
                 lo, hi = self._candidates(i)
-                xi, mi, pi = self.pos[i], self.metric[i], self.pressure[i]
+                xi, mi, pi, vi = self.pos[i], self.metric[i], self.pressure[i], self.vel[i]
                 for t in range(self._span(lo, hi)):
                     for run in ti.static(range(3)):
                         j = lo[run] + t
-                        d, r, q, _g = self._pair(i, xi, mi, j, hi[run], 1.0 / h)
+                        d, r, q, g = self._pair(i, xi, mi, j, hi[run], 1.0 / h)
                         p = pi + self.pressure[j]
                         push = 0.5 * dt * dt * (p[0] * q + p[1] * q * q)  # mm along r_hat
                         apart = r > 1e-6 * h
-                        shift -= ti.select(apart, push / r, 0.0) * d
+                        inv_r = ti.select(apart, 1.0 / r, 0.0)
+                        shift -= push * inv_r * d
+                        u = (vi - self.vel[j]).dot(g) * inv_r  # approach speed along r_hat, mm/s
+                        impulse = dt * q * (sigma * u + beta * u * u)
+                        slow -= ti.select(u > 0.0, 0.5 * ti.min(impulse, u) * inv_r, 0.0) * d
                         coincident += ti.cast((q > 0.0) & (not apart), ti.i32)
                 if coincident:  # rare: separate coincident pairs along a deterministic direction
                     for run in ti.static(range(3)):
@@ -563,6 +569,7 @@ class Bleeding:
                             if q > 0.0 and r <= 1e-6 * h:
                                 angle = 2.0 * math.pi * hash01(ti.u32(self.uid[i]), ti.u32(self.uid[j]))
                                 shift -= 0.05 * h * ti.Vector([ti.cos(angle), ti.sin(angle)]) / ti.sqrt(mi[0] + mi[2])
+                shift += slow * dt
                 damping = self.drag[i] * dt  # pressure moves the film against the same drag as gravity
                 if damping > 1e-6:
                     shift *= (1.0 - ti.exp(-damping)) / damping
@@ -582,13 +589,13 @@ class Bleeding:
                 moved = (self.pos_new[i] - start) * (1.0 - self.clot[i])
                 if ti.static(self.walls):  # the velocity below loses the part that went into the wall
                     moved = self._keep_inside(start + moved) - start
-                v, speed = self._clamp_speed(inertia * moved / dt, self.metric[i], max_speed)
                 self.pos[i] = start + moved
+                if not self._locate(i):
+                    self.fate[i] = LEFT_SURFACE
+                v, speed = self._clamp_speed(inertia * moved / dt, self.metric[i], max_speed)  # the metric where it ends
                 self.vel[i] = v
                 if speed < rest_speed:
                     self.clot[i] = ti.min(self.clot[i] + clotting * dt, 1.0)
-                if not self._locate(i):
-                    self.fate[i] = LEFT_SURFACE
 
     @ti.func
     def _clamp_speed(self, v, m, max_speed):
@@ -598,33 +605,6 @@ class Bleeding:
             v *= max_speed / speed
             speed = max_speed
         return v, speed
-
-    @ti.func
-    def _viscosity(self, serial: ti.template(), n, dt, h, sigma, beta, max_speed):
-        """Viscosity impulses between approaching pairs in range, gathered: v_i -= I_ij / 2; then the speed clamp."""
-        for i in range(n):
-            if i < self.alive_count[None]:
-                vi = self.vel[i]
-                v = vi
-                if self.fate[i] == ALIVE and (sigma > 0.0 or beta > 0.0):
-                    lo, hi = self._candidates(i)
-                    xi, mi = self.pos[i], self.metric[i]
-                    for t in range(self._span(lo, hi)):
-                        for run in ti.static(range(3)):
-                            j = lo[run] + t
-                            d, r, q, g = self._pair(i, xi, mi, j, hi[run], 1.0 / h)
-                            inv_r = 1.0 / r
-                            u = (vi - self.vel[j]).dot(g) * inv_r  # approach speed along r_hat, mm/s
-                            impulse = dt * q * (sigma * u + beta * u * u)
-                            pushes = (self.fate[j] == ALIVE) & (r > 1e-6 * h) & (q > 0.0) & (u > 0.0)
-                            v -= ti.select(pushes, 0.5 * ti.min(impulse, u) * inv_r, 0.0) * d
-                if self.fate[i] == ALIVE:
-                    v, _ = self._clamp_speed(v, self.metric[i], max_speed)
-                self.vel_new[i] = v
-        ti.loop_config(serialize=serial)
-        for i in range(n):
-            if i < self.alive_count[None]:
-                self.vel[i] = self.vel_new[i]
 
     @ti.kernel
     def _count_suction(self, n: ti.i32, tools: ti.i32):

@@ -53,6 +53,36 @@ def test_lone_particle_accelerates_at_g_sin_theta(width_mm, length_mm):
     assert direction @ [0.0, -math.cos(math.radians(30.0)), -0.5] == pytest.approx(1.0, abs=1e-3)  # straight downhill
 
 
+@pytest.mark.parametrize("width_mm, length_mm", [(24.0, 24.0), (24.0, 48.0)])
+@pytest.mark.parametrize("approaching", [True, False])
+def test_viscosity_impulse_of_a_pair_is_clavets(width_mm, length_mm, approaching):
+    """Two particles 0.5 h apart moving along their line, nothing else acting (no pressure, gravity, drag or clotting):
+    after one substep an approaching pair has each lost half of Clavet's impulse dt q (sigma u + beta u^2) (u the
+    approach speed, q at their advanced distance), a receding pair keeps its speed. Also with 2:1 stretched texels."""
+    surface = build_surface(plane_mesh(width_mm, length_mm), 128)
+    sigma, beta, dt, speed = 5.0, 0.05, 0.01, 20.0  # 1/s, s/mm, s, mm/s of each particle
+    bleeding = bleeding_on(surface, viscosity_sigma_1_s=sigma, viscosity_beta_s_mm=beta, blood_viscosity_mpa_s=0.0,
+                           stiffness_mm_s2=0.0, near_stiffness_mm_s2=0.0, inertia=1.0, clotting_rate_1_s=0.0,
+                           max_speed_mm_s=1.0e5, substeps=1)
+    h, texel_mm = DEFAULTS["interaction_radius_mm"], width_mm / 128
+    apart_mm = 0.5 * h
+    bleeding.place(np.array([[64.0 - apart_mm / 2 / texel_mm, 64.0], [64.0 + apart_mm / 2 / texel_mm, 64.0]]))
+    toward = 1.0 if approaching else -1.0
+    velocity = np.zeros((bleeding.pool_size, 2), np.float32)
+    velocity[:2, 0] = [toward * speed / texel_mm, -toward * speed / texel_mm]  # grid units / s
+    bleeding.vel.from_numpy(velocity)
+    bleeding.step(dt)
+    after = bleeding.particle_arrays()["particle_velocity_mm_s"]
+    expected = speed
+    if approaching:
+        u = 2.0 * speed
+        q = 1.0 - (apart_mm - u * dt) / h
+        expected = speed - 0.5 * min(dt * q * (sigma * u + beta * u * u), u)
+    assert expected < speed or not approaching
+    for index, sign in ((0, toward), (1, -toward)):
+        assert after[index] == pytest.approx([sign * expected, 0.0, 0.0], rel=1e-4, abs=1e-3)
+
+
 def scene_config(changes: dict):
     """The bleeding scene with the particle method (the method these tests are about) and these changes."""
     changes = {"bleeding.method": "particles", **changes}

@@ -404,8 +404,8 @@ class HeightFieldBleeding:
         return ti.min(ti.max(un, -bound), bound)
 
     @ti.kernel
-    def _substep(self, serial: ti.template(), n: ti.i32, dt: ti.f32, nu: ti.f32, pin: ti.f32, rest_speed: ti.f32, clot_keep: ti.f32, seed: ti.i32,
-                 k: ti.i32, substeps: ti.i32):
+    def _substep(self, serial: ti.template(), n: ti.i32, dt: ti.f32, nu: ti.f32, pin: ti.f32, rest_speed: ti.f32,
+                 clot_keep: ti.f32, seed: ti.i32, k: ti.i32, substeps: ti.i32):
         """Substep k of `substeps` of the n awake tiles, in one launch (its loops run one after the other): the step's
         _momentum, _limit, _transfer."""
         self._momentum(serial, n, dt, nu, pin)

@@ -308,8 +308,8 @@ class Bleeding:
                 k_near: ti.f32, inertia: ti.f32, max_speed: ti.f32, clotting: ti.f32, rest_speed: ti.f32, sigma: ti.f32,
                 beta: ti.f32):
         """The passes in `passes` (bits PREDICT ... FINISH), in the order of a substep, in one launch: each pass's
-        loops run one after the other, as separate kernels would, at one launch from Python instead of six. light_serial:
-        the loops other than the three pair walks run on the launching thread (small pools, LIGHT_LOOP_ITEMS)."""
+        loops run one after the other, as separate kernels would, at one launch from Python instead of five. light_serial:
+        the loops other than the two pair walks run on the launching thread (small pools, LIGHT_LOOP_ITEMS)."""
         if ti.static(passes & PREDICT):
             self._predict(light_serial, n, dt, nu, film, rest, pinning, lifetime)
         if ti.static(passes & SORT):

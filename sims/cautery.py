@@ -38,7 +38,7 @@ import math
 import numpy as np
 import taichi as ti
 
-from sims import backend, layers
+from sims import layers
 from sims.seams import seam_links
 from sims.tiles import TILE, WAKE_HALO_TEXELS, TileSchedule, tile_spheres
 
@@ -426,7 +426,7 @@ class Cautery:
         self._wake_all = False
         if self.tiles.fell_asleep:  # their latest values into the other buffer too (they are not stepped now)
             asleep = self.tiles.fell_asleep
-            self._copy_sleeping(backend.serial(asleep * TILE * TILE), self.current, 1 - self.current, asleep)
+            self._copy_sleeping(self.tiles.serial_for(asleep), self.current, 1 - self.current, asleep)
         self.last_iterations = count
         if awake == 0:
             return

@@ -125,12 +125,12 @@ class BloodFilm(GridReader):
         self.clot = ti.field(ti.f32, shape) if self.has_clot else None
         self.fresh = None if self.reads_method else ti.field(ti.f32, shape)  # this step's film (mm)
         self.trail = ti.field(ti.f32, shape)  # mm
-        self.serial = backend.serial(shape[0] * shape[1])  # _keep on the launching thread (a coarse grid's film)
         self.stain = ti.field(ti.f32, shape)  # mm
         self.near = ti.field(ti.i32, shape)   # 1: the trail is not zero within NEAR_TEXELS of this texel (take_near)
         self.tile = max(NEAR_TEXELS, round(DISPLAY_TEXELS_PER_TILE / self.display_per_texel))  # film texels a side
         self.tile_shape = (-(-shape[0] // self.tile), -(-shape[1] // self.tile))
         self.touched = ti.field(ti.i32, self.tile_shape)  # 1: a trail or stain in this tile may have changed
+        self.serial = backend.serial(shape[0] * shape[1])  # _keep on the launching thread (a coarse grid's film)
         self.reset()
 
     def reset(self) -> None:

@@ -355,7 +355,7 @@ class HeightFieldBleeding:
         awake = self.tiles.plan(-(-n // TILE), 0, False)
         self.last_substeps = n if awake else 0
         if awake:
-            serial = backend.serial(awake * TILE * TILE)
+            serial = self.tiles.serial_for(awake)
             sub = dt_s / n
             clot_keep = math.exp(-p["clotting_rate_1_s"] * sub)
             for k in range(n):

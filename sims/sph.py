@@ -53,8 +53,8 @@ CELL_COLUMNS = 4            # neighbour cells are h tall and h / CELL_COLUMNS wi
                             # (2 + 1 / CELL_COLUMNS) h, not 3 h (25 % fewer candidates, runs still long)
 LANES = 8                   # candidate runs are walked in whole multiples of this (one AVX2 vector of f32)
 MAX_SUCTION_TOOLS = 8
-LIGHT_LOOP_ITEMS = 4        # a particle weighs this many work items of backend.serial in the light loops (advance, sort,
-                            # finish, the copies): they run on the launching thread below about 2,000 particles, where
+LIGHT_LOOP_ITEMS = 4        # a particle weighs this many work items of backend.serial in the light loops (advance, sort
+                            # and its copies, finish): they run on the launching thread below about 2,000 particles, where
                             # waking the thread pool costs more (1,000 particles: 2.8 -> 2.2 ms per step, measured)
 MAX_RELAX_FRACTION = 0.5    # largest relaxation displacement per substep, in interaction radii
 WALL_MARGIN = 1e-3          # walls keep particles this far (texels) inside the border of a valid texel

@@ -119,6 +119,10 @@ class TileSchedule:
         self._flagged = self._flagged or self.awake > 0
         return self.awake
 
+    def serial_for(self, tiles: int) -> bool:
+        """backend.serial for a loop over the texels of `tiles` tiles."""
+        return backend.serial(tiles * self.tile * self.tile)
+
     @ti.kernel
     def _plan(self, serial: ti.template(), reach: ti.i32, margin: ti.i32, wake_all: ti.i32) -> ti.types.vector(2, ti.i32):
         ti.loop_config(serialize=serial)

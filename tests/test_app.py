@@ -361,7 +361,10 @@ def test_one_click_on_the_tissue_after_add_bleed_point_adds_a_point_that_bleeds_
         blood = lab.scene.bleeding.particle_arrays()["particle_position_mm"]
         return int((np.linalg.norm(blood - position, axis=1) < added[0].item["radius_mm"] + 1.5).sum()) >= 10
 
-    in_browser(lab, chrome, click_once, until=bleeding_there, timeout_s=120)
+    def bleeding_there_with_sliders():  # the view (and so the point's sliders) follows the steps within VIEW_INTERVAL_S
+        return bleeding_there() and f"bleed_points.{new_points()[0].name}.rate_ml_s" in lab.sliders
+
+    in_browser(lab, chrome, click_once, until=bleeding_there_with_sliders, timeout_s=120)
     (point,) = new_points()
     position = point.position_at(scene.time_s)
     assert not lab.armed_click, "one click, one point: the next click adds nothing"

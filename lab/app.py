@@ -293,9 +293,9 @@ class LabApp:
                 return
             try:
                 used = self.session.set_parameter(key, value)
-            except Refused as exc:
-                self.session.notice = f"refused: {exc}"
+            except Refused as exc:  # the value in use is back on the slider before the notice says why
                 handle.value = self.session.parameter_value(key)
+                self.session.notice = f"refused: {exc}"
                 return
             if used != value:
                 handle.value = used

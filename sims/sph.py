@@ -55,9 +55,9 @@ LANES = 32                  # candidate runs are walked in whole multiples of th
                             # lanes x 4 interleaved, 32 candidates an iteration, and a shorter walk (24 at the default
                             # radius and spacing) ran in its scalar remainder: 8 -> 32 made both walks 2.5x faster
 MAX_SUCTION_TOOLS = 8
-LIGHT_LOOP_ITEMS = 4        # a particle weighs this many work items of backend.serial in the light loops (advance, sort
-                            # and its copies, finish): they run on the launching thread below about 2,000 particles, where
-                            # waking the thread pool costs more (1,000 particles: 2.8 -> 2.2 ms per step, measured)
+PARTICLE_LOOP_ITEMS = 2     # a particle weighs this many work items of backend.serial: every loop of a substep runs on the
+                            # launching thread below about 4,000 particles, where waking the thread pool costs more than
+                            # the second thread gains (A/B, median step: 0.71 at 1,000, 0.62 at 3,000, 0.99 at 5,000)
 MAX_RELAX_FRACTION = 0.5    # largest relaxation displacement per substep, in interaction radii
 WALL_MARGIN = 1e-3          # walls keep particles this far (texels) inside the border of a valid texel
 KEYS = ("spawned", "suctioned", "left_surface", "expired", "dropped_pool_full")
@@ -292,36 +292,36 @@ class Bleeding:
             sub = dt_s / substeps
             nu = p["blood_viscosity_mpa_s"] * 1e-3 / p["blood_density_kg_m3"] * 1e6  # mm^2/s
             rest = self.rest_density
-            light_serial = backend.serial(LIGHT_LOOP_ITEMS * n)
+            serial = backend.serial(PARTICLE_LOOP_ITEMS * n)
             values = (n, sub, size[0], size[1], h, nu, p["film_thickness_mm"], rest, p["pinning_density"] * rest,
                       p["lifetime_s"], p["stiffness_mm_s2"], p["near_stiffness_mm_s2"], p["inertia"], p["max_speed_mm_s"],
                       p["clotting_rate_1_s"], p["rest_speed_mm_s"], p["viscosity_sigma_1_s"], p["viscosity_beta_s_mm"])
             for _ in range(substeps):
                 for passes in PASS_NAMES if self.separate_passes else (SUBSTEP,):
-                    self._passes(passes, light_serial, *values)
+                    self._passes(passes, serial, *values)
             self._apply_suction(dt_s, suction)
-            self._passes(SORT, light_serial, *values)  # drops those that left in the last substep or to suction
+            self._passes(SORT, serial, *values)  # drops those that left in the last substep or to suction
             self.count = int(self.alive_count[None])
         self.step_index += 1
 
     @ti.kernel
-    def _passes(self, passes: ti.template(), light_serial: ti.template(), n: ti.i32, dt: ti.f32, size_x: ti.f32,
+    def _passes(self, passes: ti.template(), serial: ti.template(), n: ti.i32, dt: ti.f32, size_x: ti.f32,
                 size_y: ti.f32, h: ti.f32, nu: ti.f32, film: ti.f32, rest: ti.f32, pinning: ti.f32, lifetime: ti.f32, k: ti.f32,
                 k_near: ti.f32, inertia: ti.f32, max_speed: ti.f32, clotting: ti.f32, rest_speed: ti.f32, sigma: ti.f32,
                 beta: ti.f32):
         """The passes in `passes` (bits PREDICT ... FINISH), in the order of a substep, in one launch: each pass's
-        loops run one after the other, as separate kernels would, at one launch from Python instead of five. light_serial:
-        the loops other than the two pair walks run on the launching thread (small pools, LIGHT_LOOP_ITEMS)."""
+        loops run one after the other, as separate kernels would, at one launch from Python instead of five. serial:
+        the loops run on the launching thread (small pools, PARTICLE_LOOP_ITEMS)."""
         if ti.static(passes & PREDICT):
-            self._predict(light_serial, n, dt, nu, film, rest, pinning, lifetime)
+            self._predict(serial, n, dt, nu, film, rest, pinning, lifetime)
         if ti.static(passes & SORT):
-            self._sort(light_serial, n, size_x, size_y)
+            self._sort(serial, n, size_x, size_y)
         if ti.static(passes & DENSITY):
-            self._density_pass(n, h, rest, k, k_near)
+            self._density_pass(serial, n, h, rest, k, k_near)
         if ti.static(passes & RELAX):
-            self._relax(n, dt, h, sigma, beta)
+            self._relax(serial, n, dt, h, sigma, beta)
         if ti.static(passes & FINISH):
-            self._finish(light_serial, n, dt, inertia, max_speed, clotting, rest_speed)
+            self._finish(serial, n, dt, inertia, max_speed, clotting, rest_speed)
 
     def _cell_size_for(self, radius_mm: float):
         """Cells never shrink below the size the grid was allocated for (a smaller radius stays correct)."""
@@ -535,8 +535,9 @@ class Bleeding:
         return d, r, q, g
 
     @ti.func
-    def _density_pass(self, n, h, rest, k, k_near):
+    def _density_pass(self, serial: ti.template(), n, h, rest, k, k_near):
         """Density and near density over the candidates in range."""
+        ti.loop_config(serialize=serial)
         for i in range(n):
             if i < self.alive_count[None]:
                 rho, rho_near = 0.0, 0.0
@@ -551,10 +552,11 @@ class Bleeding:
                 self.pressure[i] = ti.Vector([k * (rho - rest), k_near * rho_near])
 
     @ti.func
-    def _relax(self, n, dt, h, sigma, beta):
+    def _relax(self, serial: ti.template(), n, dt, h, sigma, beta):
         """Double density relaxation, symmetric gather: each pair moves i by -dt^2/2 (P_i + P_j)(...) r_hat; and
         Clavet's viscosity in the same walk: an approaching pair (speed u along r_hat) changes v_i by -min(I, u)/2 r_hat,
         I = dt q (sigma u + beta u^2), which moves i by that times dt (one pair walk fewer than a pass of its own)."""
+        ti.loop_config(serialize=serial)
         for i in range(n):
             if i < self.alive_count[None]:
                 shift, slow = ti.Vector([0.0, 0.0]), ti.Vector([0.0, 0.0])

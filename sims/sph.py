@@ -17,14 +17,15 @@ particles to the front of the pool in cell order and counts and drops the others
 three contiguous runs of the pool (the rows of its 3 x (2 CELL_COLUMNS + 1) cells). The density and relaxation
 passes walk the three runs side by side without a branch (a pair out of range weighs exactly 0), in whole
 multiples of LANES candidates, so that the whole walk runs in the compiler's vector loop (8 pairs per instruction
-on a CPU with AVX2), and the three runs are three independent chains in one loop (1.2 times faster than one loop per run, whose 3-4 vectors were latency-bound). Every kernel
-gathers from neighbours and writes only its own particle; the sort's prefix sum and scatter run serially (a few per
-cent of the step on a CPU), so results are bitwise identical across runs and thread counts. A substep's passes are
-one launch (_passes): on a CPU a launch from Python costs 25-45 us, a third of a 1,000-particle step when each pass
-was its own. Kernels loop over the pool's count at the start of the step and skip past the device's alive_count: the
-host reads the count back once per step. Work per particle is capped (MAX_CANDIDATES examined, the first in cell
-order), so dense clumps cost bounded time. A particle carries its texel's metric and gravity, read again (one 32-byte
-record) only when it enters another texel after the advance or the relaxation; the sort moves them with the particle.
+on a CPU with AVX2), and the three runs are three independent chains in one loop (1.2 times faster than one loop
+per run). Every kernel gathers from neighbours and writes only its own particle; the sort's prefix sum and scatter
+run serially (a few per cent of the step on a CPU), so results are bitwise identical across runs and thread counts.
+A substep's passes are one launch (_passes): on a CPU a launch from Python costs 25-45 us, a third of a 1,000-particle
+step when each pass was its own. Kernels loop over the pool's count at the start of the step and skip past the
+device's alive_count: the host reads the count back once per step. Work per particle is capped (MAX_CANDIDATES
+examined, the first in cell order), so dense clumps cost bounded time. A particle carries its texel's metric and
+gravity, read again (one 32-byte record) only when it enters another texel after the advance or the relaxation; the
+sort moves them with the particle.
 
 Accounting: spawned = alive + suctioned + left_surface + expired, exactly, at every step.
 

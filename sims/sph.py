@@ -24,8 +24,8 @@ A substep's passes are one launch (_passes): on a CPU a launch from Python costs
 step when each pass was its own. Kernels loop over the pool's count at the start of the step and skip past the
 device's alive_count: the host reads the count back once per step. Work per particle is capped (MAX_CANDIDATES
 examined, the first in cell order), so dense clumps cost bounded time. A particle carries its texel's metric and
-gravity, read again (one 32-byte record) only when it enters another texel after the advance or the relaxation; the
-sort moves them with the particle.
+gravity, read again (one 32-byte record) only when it enters another texel after the advance or the relaxation, or
+at its first advance (a spawned or placed particle's texel is checked there); the sort moves them with the particle.
 
 Accounting: spawned = alive + suctioned + left_surface + expired, exactly, at every step.
 
@@ -373,11 +373,12 @@ class Bleeding:
         return inside
 
     @ti.func
-    def _relocate(self, i, before):
+    def _relocate(self, i, before, fresh):
         """_locate(i) for particle i moved from grid position `before`, whose texel's record it holds: the record is
-        read only when it entered another texel (its own texel stays valid)."""
+        read only when it entered another texel or is fresh (spawned or placed, where nothing has checked its texel
+        yet); a texel it stays in was valid when it was last located."""
         inside = 1
-        if (ti.floor(self.pos[i]) != ti.floor(before)).any():
+        if fresh or (ti.floor(self.pos[i]) != ti.floor(before)).any():
             inside = self._locate(i)
         return inside
 
@@ -428,8 +429,9 @@ class Bleeding:
                 self.pos[i] += v * dt
                 if ti.static(self.walls):
                     self.pos[i] = self._keep_inside(self.pos[i])
+                fresh = self.age[i] == 0.0
                 self.age[i] += dt
-                if not self._relocate(i, before):
+                if not self._relocate(i, before, fresh):
                     self.fate[i] = LEFT_SURFACE
                 elif self.age[i] > lifetime:
                     self.fate[i] = EXPIRED
@@ -606,7 +608,7 @@ class Bleeding:
                     moved = self._keep_inside(start + moved) - start
                 before = self.pos[i]
                 self.pos[i] = start + moved
-                if not self._relocate(i, before):
+                if not self._relocate(i, before, False):
                     self.fate[i] = LEFT_SURFACE
                 v, speed = self._clamp_speed(inertia * moved / dt, self.metric[i], max_speed)  # the metric where it ends
                 self.vel[i] = v

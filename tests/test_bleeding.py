@@ -217,6 +217,16 @@ def test_particles_carry_the_metric_and_gravity_of_the_texel_they_are_in(patch_2
     assert np.median(moved) > 1.0  # still flowing: the texels changed under the particles
 
 
+def test_particles_at_rest_off_the_surface_leave_it_at_the_first_step(patch_256):
+    """A particle reads its texel again only when it enters another one; one placed (or spawned) at rest where there is
+    no surface must still leave at its first step, not stay because it did not move."""
+    bleeding = Bleeding(patch_256, DEFAULTS, (0.0, 0.0, 0.0), 10)
+    bleeding.place(np.array([[-0.5, 100.5], [100.5, -0.5], [300.5, 50.5], [60.5, 60.5], [190.5, 190.5]], np.float32))
+    bleeding.step(0.01)
+    counts = assert_accounting(bleeding)
+    assert counts["left_surface"] == 3 and counts["alive"] == 2, counts
+
+
 def test_density_sums_every_pair_in_range_once(patch_256):
     """The density pass against all pairs in NumPy on a corner of the curved patch (the metric varies per texel):
     the candidate runs (three rows of cells h/4 wide, walked in whole vectors) hold every neighbour once."""

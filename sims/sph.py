@@ -20,9 +20,10 @@ multiples of LANES candidates, so that the whole walk runs in the compiler's vec
 on a CPU with AVX2), and the three runs are three independent chains in one loop (1.2 times faster than one loop
 per run). Every kernel gathers from neighbours and writes only its own particle; the sort's prefix sum and scatter
 run serially (a few per cent of the step on a CPU), so results are bitwise identical across runs and thread counts.
-A substep's passes are one launch (_passes): on a CPU a launch from Python costs 25-45 us, a third of a 1,000-particle
-step when each pass was its own. Kernels loop over the pool's count at the start of the step and skip past the
-device's alive_count: the host reads the count back once per step. Work per particle is capped (MAX_CANDIDATES
+A substep's passes are one launch (_passes), and a small pool's whole step is one (its loops serial in one task): on a
+CPU a launch from Python costs 15-45 us, a third of a 1,000-particle step when each pass was its own. Kernels loop over
+the pool's count at the start of the step and skip past the device's alive_count: the step's last launch returns the
+count, the one read back. Work per particle is capped (MAX_CANDIDATES
 examined, the first in cell order), so dense clumps cost bounded time. A particle carries its texel's metric and
 gravity, read again (one 32-byte record) only when it enters another texel after the advance or the relaxation, or
 at its first advance (a spawned or placed particle's texel is checked there); the sort moves them with the particle.
@@ -297,22 +298,48 @@ class Bleeding:
             values = (n, sub, size[0], size[1], h, nu, p["film_thickness_mm"], rest, p["pinning_density"] * rest,
                       p["lifetime_s"], p["stiffness_mm_s2"], p["near_stiffness_mm_s2"], p["inertia"], p["max_speed_mm_s"],
                       p["clotting_rate_1_s"], p["rest_speed_mm_s"], p["viscosity_sigma_1_s"], p["viscosity_beta_s_mm"])
-            for _ in range(substeps):
-                for passes in PASS_NAMES if self.separate_passes else (SUBSTEP,):
-                    self._passes(passes, serial, *values)
-            self._apply_suction(dt_s, suction)
-            self._passes(SORT, serial, *values)  # drops those that left in the last substep or to suction
-            self.count = int(self.alive_count[None])
+            if serial and not self.separate_passes:  # the whole step in one launch (two while a suction tool is on)
+                sucking = any(rate > 0 for _, _, rate in suction)
+                count = self._passes(SUBSTEP, True, substeps, not sucking, *values)
+                if sucking:
+                    self._apply_suction(dt_s, suction)
+                    count = self._passes(SUBSTEP, True, 0, True, *values)
+            else:
+                for _ in range(substeps):
+                    for passes in PASS_NAMES if self.separate_passes else (SUBSTEP,):
+                        self._passes(passes, serial, 1, False, *values)
+                self._apply_suction(dt_s, suction)
+                count = self._passes(SORT, serial, 1, False, *values)
+            self.count = count  # the last sort dropped those that left in the last substep or to suction
         self.step_index += 1
 
     @ti.kernel
-    def _passes(self, passes: ti.template(), serial: ti.template(), n: ti.i32, dt: ti.f32, size_x: ti.f32,
-                size_y: ti.f32, h: ti.f32, nu: ti.f32, film: ti.f32, rest: ti.f32, pinning: ti.f32, lifetime: ti.f32, k: ti.f32,
-                k_near: ti.f32, inertia: ti.f32, max_speed: ti.f32, clotting: ti.f32, rest_speed: ti.f32, sigma: ti.f32,
-                beta: ti.f32):
-        """The passes in `passes` (bits PREDICT ... FINISH), in the order of a substep, in one launch: each pass's
-        loops run one after the other, as separate kernels would, at one launch from Python instead of five. serial:
-        the loops run on the launching thread (small pools, PARTICLE_LOOP_ITEMS)."""
+    def _passes(self, passes: ti.template(), serial: ti.template(), substeps: ti.i32, last_sort: ti.i32, n: ti.i32,
+                dt: ti.f32, size_x: ti.f32, size_y: ti.f32, h: ti.f32, nu: ti.f32, film: ti.f32, rest: ti.f32, pinning: ti.f32,
+                lifetime: ti.f32, k: ti.f32, k_near: ti.f32, inertia: ti.f32, max_speed: ti.f32, clotting: ti.f32,
+                rest_speed: ti.f32, sigma: ti.f32, beta: ti.f32) -> ti.i32:
+        """The passes in `passes` (bits PREDICT ... FINISH) in the order of a substep, in one launch; returns the alive
+        count. Parallel: one substep, each pass's loops one after the other as separate kernels would run them.
+        serial (small pools, PARTICLE_LOOP_ITEMS): the launch is one task on the launching thread that runs `substeps`
+        substeps, then the sort if last_sort, so a whole step is one launch (a launch with these arguments costs
+        about 40 us from Python, a tenth of a 1,000-particle step)."""
+        if ti.static(serial):
+            ti.loop_config(serialize=True)
+            for _ in range(1):  # one serial task: the passes' loops run inside it, in order
+                for _substep in range(substeps):
+                    self._substep(passes, serial, n, dt, size_x, size_y, h, nu, film, rest, pinning, lifetime, k, k_near,
+                                  inertia, max_speed, clotting, rest_speed, sigma, beta)
+                if last_sort:
+                    self._sort(serial, n, size_x, size_y)
+        else:
+            self._substep(passes, serial, n, dt, size_x, size_y, h, nu, film, rest, pinning, lifetime, k, k_near, inertia,
+                          max_speed, clotting, rest_speed, sigma, beta)
+        return self.alive_count[None]
+
+    @ti.func
+    def _substep(self, passes: ti.template(), serial: ti.template(), n, dt, size_x, size_y, h, nu, film, rest, pinning,
+                 lifetime, k, k_near, inertia, max_speed, clotting, rest_speed, sigma, beta):
+        """The passes in `passes`, in the order of a substep."""
         if ti.static(passes & PREDICT):
             self._predict(serial, n, dt, nu, film, rest, pinning, lifetime)
         if ti.static(passes & SORT):

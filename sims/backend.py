@@ -23,6 +23,24 @@ def cache_dir() -> Path:
     return path
 
 
+def save_cached_npz(path: Path, **arrays) -> None:
+    """Save a cache entry as .npz under a unique temporary name in the same folder, then rename it: a reader (another
+    process, say a second test worker) sees the whole entry or none."""
+    import tempfile
+
+    import numpy as np
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    handle, temp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".npz")
+    try:
+        with os.fdopen(handle, "wb") as file:
+            np.savez(file, **arrays)
+        os.replace(temp, path)
+    except BaseException:
+        Path(temp).unlink(missing_ok=True)
+        raise
+
+
 def init(arch: str = "auto") -> str:
     """Start Taichi once per process and return the arch name it runs on ('x64', 'cuda', ...).
 

@@ -18,7 +18,7 @@ import numpy as np
 import taichi as ti
 
 from sims import paths
-from sims.backend import cache_dir
+from sims.backend import cache_dir, save_cached_npz
 
 GRID_PADDING_MM = 3.0  # matches the largest contact distance (sims.params)
 SHAPE_CODES = {"ball": 0, "capsule": 1, "spatula": 2, "mesh": 3}
@@ -209,8 +209,7 @@ def mesh_sdf_grid(path, resolution: int):
     counts = np.ceil((hi - lo + 2 * pad) / spacing).astype(int) + 1
     grid = np.zeros(tuple(counts), np.float32)
     _sdf_grid(np.ascontiguousarray(mesh.triangles, np.float32), origin.astype(np.float32), spacing, grid)
-    cached.parent.mkdir(parents=True, exist_ok=True)
-    np.savez(cached, grid=grid, origin=origin, spacing=spacing)
+    save_cached_npz(cached, grid=grid, origin=origin, spacing=spacing)
     return grid, origin, spacing
 
 

@@ -6,8 +6,6 @@ u = (c + 0.5) / W, v = 1 - (r + 0.5) / H. "Grid coordinates" x = u W (columns) a
 """
 
 import hashlib
-import os
-import tempfile
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,7 +15,7 @@ import taichi as ti
 import trimesh
 from scipy import ndimage
 
-from sims.backend import cache_dir
+from sims.backend import cache_dir, save_cached_npz
 
 UV_OVERLAP_TOLERANCE = 1e-3  # fraction of covered texels two triangles may both claim before UVs count as overlapping
 MAX_COORDINATE_MM = 1e5  # a vertex farther out than this (100 m) is a unit or export error, not tissue
@@ -156,7 +154,7 @@ def _skipped_area_fraction(vertices, faces, uv, size) -> float:
 def atlas_uv(vertices: np.ndarray, faces: np.ndarray, size: int):
     """Unique UVs from xatlas (cached on disk): (vertices (V', 3), faces (F, 3), uv (V', 2)).
 
-    The cache entry is written under a unique temporary name and renamed, so it is complete or absent; an entry
+    The cache entry is complete or absent (backend.save_cached_npz); an entry
     that cannot be read all the same (truncated, corrupt) is deleted and the atlas computed again."""
     check_vertices(vertices)
     key = hashlib.sha1(vertices.astype(np.float64).tobytes() + faces.astype(np.int64).tobytes() + str(size).encode()).hexdigest()
@@ -164,7 +162,7 @@ def atlas_uv(vertices: np.ndarray, faces: np.ndarray, size: int):
     result = _read_atlas(cached)
     if result is None:
         result = _compute_atlas(vertices, faces, size)
-        _write_atlas(cached, result)
+        save_cached_npz(cached, vertices=result[0], faces=result[1], uv=result[2])
     return result
 
 
@@ -178,19 +176,6 @@ def _read_atlas(path: Path):
     except (OSError, EOFError, ValueError, KeyError, zipfile.BadZipFile):
         path.unlink(missing_ok=True)
         return None
-
-
-def _write_atlas(path: Path, result) -> None:
-    """Save an atlas as .npz: a unique temporary file in the same folder, then os.replace."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    handle, temp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".npz")
-    try:
-        with os.fdopen(handle, "wb") as file:
-            np.savez(file, vertices=result[0], faces=result[1], uv=result[2])
-        os.replace(temp, path)
-    except BaseException:
-        Path(temp).unlink(missing_ok=True)
-        raise
 
 
 def _compute_atlas(vertices: np.ndarray, faces: np.ndarray, size: int):

@@ -1,6 +1,5 @@
 """Blood: gravity through the metric, resolution independence, accounting, settling, hard cases,
 determinism, cautery stopping bleeding and suction."""
-import copy
 import json
 import math
 import subprocess
@@ -8,12 +7,11 @@ import sys
 
 import numpy as np
 import pytest
-import yaml
 
 from sims import params
 from sims.config import REPO_ROOT, load_scene_config
 from sims.scene import Scene
-from sims.sph import KEYS, Bleeding
+from sims.sph import Bleeding
 from sims.surface import build_surface, load_mesh
 from tests.helpers import plane_mesh
 

@@ -5,7 +5,6 @@ import taichi as ti
 import trimesh
 
 from sims.cautery import Cautery
-from sims.config import REPO_ROOT
 from sims.instruments import Instrument, InstrumentFields, local_frame
 from sims.surface import build_surface
 from tests.helpers import cautery_values, plane_mesh, tissue_values

@@ -65,10 +65,11 @@ def profile(count: int, steps: int = 5) -> dict:
         def call(*args):
             ti.sync()
             start = time.perf_counter()
-            kernel(*args)
+            result = kernel(*args)
             ti.sync()
             key = PASS_NAMES.get(args[0], name) if name == "_passes" else name
             spent[key] = spent.get(key, 0.0) + time.perf_counter() - start
+            return result
         return call
 
     for name, member in type(bleeding).__dict__.items():

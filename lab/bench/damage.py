@@ -1,5 +1,4 @@
 """Damage: when does Omega reach 1, against the analytic Arrhenius integral, for time steps 1 ms to 50 ms."""
-import numpy as np
 
 from lab.bench.common import save, BODY_C, build_plane, pyplot
 from sims import analytic
@@ -59,7 +58,7 @@ CASES = (
 
 
 def run(quick: bool) -> dict:
-    steps = TIME_STEPS_S[1::2] if quick else TIME_STEPS_S
+    steps = TIME_STEPS_S[3:] if quick else TIME_STEPS_S
     cases = []
     for case in CASES:
         exact = exact_time(case["tip_c"], case["start_c"])

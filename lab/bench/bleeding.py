@@ -121,7 +121,8 @@ def run(quick: bool) -> dict:
     rows = []
     for count in counts:
         numpy_steps = 0 if count > 300_000 else max(1, min(10, 30_000 // count))  # 1M: about 20 s a step, 1 GB
-        rows.append(throughput(count, steps=max(3, min(40, 200_000 // count)) if not quick else max(3, min(10, 50_000 // count)), numpy_steps=numpy_steps))
+        steps = max(3, min(10, 50_000 // count)) if quick else max(3, min(100, 1_000_000 // count))  # full: ~0.5 s each
+        rows.append(throughput(count, steps=steps, numpy_steps=numpy_steps))
     profiles = [profile(count) for count in ((1_000,) if quick else (1_000, 100_000))]
     substeps = (1, 2, 4) if quick else (1, 2, 4, 8)
     time_steps = (0.01,) if quick else (0.005, 0.01, 0.02)

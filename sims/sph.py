@@ -57,9 +57,10 @@ LANES = 32                  # candidate runs are walked in whole multiples of th
                             # lanes x 4 interleaved, 32 candidates an iteration, and a shorter walk (24 at the default
                             # radius and spacing) ran in its scalar remainder: 8 -> 32 made both walks 2.5x faster
 MAX_SUCTION_TOOLS = 8
-PARTICLE_LOOP_ITEMS = 2     # a particle weighs this many work items of backend.serial: every loop of a substep runs on the
-                            # launching thread below about 4,000 particles, where waking the thread pool costs more than
-                            # the second thread gains (A/B, median step: 0.71 at 1,000, 0.62 at 3,000, 0.99 at 5,000)
+PARTICLE_LOOP_ITEMS = 0.8   # a particle weighs this many work items of backend.serial: the whole step runs on the
+                            # launching thread below about 10,000 particles, where waking the thread pool for each of a
+                            # substep's loops costs more than the second thread gains (median of 200 steps, 2 threads:
+                            # 2.98 ms serial against 3.43 parallel at 5,000; 5.63 both at 10,000; 8.5 against 5.5 at 15,000)
 MAX_RELAX_FRACTION = 0.5    # largest relaxation displacement per substep, in interaction radii
 WALL_MARGIN = 1e-3          # walls keep particles this far (texels) inside the border of a valid texel
 KEYS = ("spawned", "suctioned", "left_surface", "expired", "dropped_pool_full")

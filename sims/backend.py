@@ -41,6 +41,23 @@ def save_cached_npz(path: Path, **arrays) -> None:
         raise
 
 
+def read_cached_npz(path: Path, *names: str):
+    """The named arrays of a cache entry, in order, or None when there is no entry or it cannot be read
+    (truncated, corrupt or missing a name); an unreadable entry is deleted so it is computed again."""
+    import zipfile
+
+    import numpy as np
+
+    if not path.is_file():
+        return None
+    try:
+        with np.load(path) as data:
+            return tuple(data[name] for name in names)
+    except (OSError, EOFError, ValueError, KeyError, zipfile.BadZipFile):
+        path.unlink(missing_ok=True)
+        return None
+
+
 def init(arch: str = "auto") -> str:
     """Start Taichi once per process and return the arch name it runs on ('x64', 'cuda', ...).
 

@@ -18,7 +18,7 @@ import numpy as np
 import taichi as ti
 
 from sims import paths
-from sims.backend import cache_dir, save_cached_npz
+from sims.backend import cache_dir, read_cached_npz, save_cached_npz
 
 GRID_PADDING_MM = 3.0  # matches the largest contact distance (sims.params)
 SHAPE_CODES = {"ball": 0, "capsule": 1, "spatula": 2, "mesh": 3}
@@ -198,9 +198,9 @@ def mesh_sdf_grid(path, resolution: int):
     data = open(path, "rb").read()
     key = hashlib.sha1(data + f"{resolution}:{GRID_PADDING_MM}".encode()).hexdigest()
     cached = cache_dir() / "sdf" / f"{key}.npz"
-    if cached.is_file():
-        with np.load(cached) as saved:
-            return saved["grid"], saved["origin"], float(saved["spacing"])
+    saved = read_cached_npz(cached, "grid", "origin", "spacing")
+    if saved is not None:
+        return saved[0], saved[1], float(saved[2])
     mesh = trimesh.load(str(path), force="mesh")
     lo, hi = mesh.bounds
     spacing = float((hi - lo).max() / resolution)

@@ -6,16 +6,14 @@ u = (c + 0.5) / W, v = 1 - (r + 0.5) / H. "Grid coordinates" x = u W (columns) a
 """
 
 import hashlib
-import zipfile
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 import taichi as ti
 import trimesh
 from scipy import ndimage
 
-from sims.backend import cache_dir, save_cached_npz
+from sims.backend import cache_dir, read_cached_npz, save_cached_npz
 
 UV_OVERLAP_TOLERANCE = 1e-3  # fraction of covered texels two triangles may both claim before UVs count as overlapping
 MAX_COORDINATE_MM = 1e5  # a vertex farther out than this (100 m) is a unit or export error, not tissue
@@ -159,23 +157,11 @@ def atlas_uv(vertices: np.ndarray, faces: np.ndarray, size: int):
     check_vertices(vertices)
     key = hashlib.sha1(vertices.astype(np.float64).tobytes() + faces.astype(np.int64).tobytes() + str(size).encode()).hexdigest()
     cached = cache_dir() / "atlas" / f"{key}.npz"
-    result = _read_atlas(cached)
+    result = read_cached_npz(cached, "vertices", "faces", "uv")
     if result is None:
         result = _compute_atlas(vertices, faces, size)
         save_cached_npz(cached, vertices=result[0], faces=result[1], uv=result[2])
     return result
-
-
-def _read_atlas(path: Path):
-    """A cached atlas (vertices, faces, uv), or None when there is none or it cannot be read (then it is deleted)."""
-    if not path.is_file():
-        return None
-    try:
-        with np.load(path) as data:
-            return data["vertices"], data["faces"], data["uv"]
-    except (OSError, EOFError, ValueError, KeyError, zipfile.BadZipFile):
-        path.unlink(missing_ok=True)
-        return None
 
 
 def _compute_atlas(vertices: np.ndarray, faces: np.ndarray, size: int):

@@ -73,6 +73,7 @@ import taichi as ti
 from sims import backend
 from sims.cautery import NEIGHBOURS, direction_coefficients, edge_weights
 from sims.hashing import hash01
+from sims.models import MAX_SUCTION_TOOLS, active_suction
 from sims.seams import TOLERANCE as SEAM_TOLERANCE
 from sims.seams import seam_links
 from sims.tiles import TileSchedule
@@ -84,7 +85,6 @@ SUCTIONED, LEFT, DRIED = range(3)  # columns of the per-tile counters of a step 
 NONE, OWNED, BACKWARD, OUTFALL = range(4)   # pipe kinds per texel and direction
 CAPACITY_MM = 64.0              # depth a texel of the largest area holds at VOLUME_LEVELS units
 VOLUME_LEVELS = 1 << 24         # units per texel at most from sources (per-tile i32 counters stay below 2^30 per step)
-MAX_SUCTION_TOOLS = 8
 LIMIT_MARGIN = 1e-5             # the outflow limiter leaves this fraction (float rounding between kernels)
 AREA_DEPTH_FRACTION = 0.1       # blood_area_mm2 counts texels at least this fraction of film_thickness_mm deep
 
@@ -361,7 +361,7 @@ class HeightFieldBleeding:
             for k in range(n):
                 self._substep(serial, awake, sub, nu, p["pinning_depth_mm"], p["rest_speed_mm_s"], clot_keep, self._substep_count, k, n)
                 self._substep_count += 1
-            tools = [tool for tool in suction if tool[2] > 0][:MAX_SUCTION_TOOLS]
+            tools = active_suction(suction)
             if tools:  # one launch takes the tools and works out the fraction each takes, on the device
                 data = np.zeros((MAX_SUCTION_TOOLS, 5), np.float32)
                 for index, (position, radius, rate) in enumerate(tools):

@@ -11,6 +11,12 @@ import numpy as np
 
 BLEEDING_CLASSES = {"particles": ("sims.sph", "Bleeding"), "height_field": ("sims.height_field", "HeightFieldBleeding")}
 REBUILD_KEYS = {"particles": {"capacity"}, "height_field": {"grid_divisor"}}  # parameters read only when the model is built
+MAX_SUCTION_TOOLS = 8  # suction tools a bleeding method serves in one step
+
+
+def active_suction(suction) -> list:
+    """The suction tools of a step's `suction` list that take blood (rate above 0), at most MAX_SUCTION_TOOLS."""
+    return [tool for tool in suction if tool[2] > 0][:MAX_SUCTION_TOOLS]
 
 
 class BleedingMethod(Protocol):

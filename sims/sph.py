@@ -47,6 +47,7 @@ from taichi.lang.util import to_numpy_type
 from sims import backend
 from sims.film import ParticleSplat
 from sims.hashing import hash01
+from sims.models import MAX_SUCTION_TOOLS, active_suction
 
 
 ALIVE, SUCTIONED, LEFT_SURFACE, EXPIRED = 0, 1, 2, 3
@@ -56,7 +57,6 @@ CELL_COLUMNS = 4            # neighbour cells are h tall and h / CELL_COLUMNS wi
 LANES = 32                  # candidate runs are walked in whole multiples of this: LLVM vectorises the walk as 8 f32
                             # lanes x 4 interleaved, 32 candidates an iteration, and a shorter walk (24 at the default
                             # radius and spacing) ran in its scalar remainder: 8 -> 32 made both walks 2.5x faster
-MAX_SUCTION_TOOLS = 8
 PARTICLE_LOOP_ITEMS = 0.8   # a particle weighs this many work items of backend.serial: the whole step runs on the
                             # launching thread below about 10,000 particles, where waking the thread pool for each of a
                             # substep's loops costs more than the second thread gains (median of 200 steps, 2 threads:
@@ -299,17 +299,17 @@ class Bleeding:
             values = (n, sub, size[0], size[1], h, nu, p["film_thickness_mm"], rest, p["pinning_density"] * rest,
                       p["lifetime_s"], p["stiffness_mm_s2"], p["near_stiffness_mm_s2"], p["inertia"], p["max_speed_mm_s"],
                       p["clotting_rate_1_s"], p["rest_speed_mm_s"], p["viscosity_sigma_1_s"], p["viscosity_beta_s_mm"])
+            tools = active_suction(suction)
             if serial and not self.separate_passes:  # the whole step in one launch (two while a suction tool is on)
-                sucking = any(rate > 0 for _, _, rate in suction)
-                count = self._passes(SUBSTEP, True, substeps, not sucking, *values)
-                if sucking:
-                    self._apply_suction(dt_s, suction)
+                count = self._passes(SUBSTEP, True, substeps, not tools, *values)
+                if tools:
+                    self._apply_suction(dt_s, tools)
                     count = self._passes(SUBSTEP, True, 0, True, *values)
             else:
                 for _ in range(substeps):
                     for passes in PASS_NAMES if self.separate_passes else (SUBSTEP,):
                         self._passes(passes, serial, 1, False, *values)
-                self._apply_suction(dt_s, suction)
+                self._apply_suction(dt_s, tools)
                 count = self._passes(SORT, serial, 1, False, *values)
             self.count = count  # the last sort dropped those that left in the last substep or to suction
         self.step_index += 1
@@ -357,8 +357,8 @@ class Bleeding:
         wanted = self._cell_size(radius_mm)
         return (max(wanted[0], self.width / self.cells_x), max(wanted[1], self.height / self.cells_y))
 
-    def _apply_suction(self, dt_s: float, suction) -> None:
-        tools = [tool for tool in suction if tool[2] > 0][:MAX_SUCTION_TOOLS]
+    def _apply_suction(self, dt_s: float, tools: list) -> None:
+        """Take blood within reach of `tools` (sims.models.active_suction), at most their rate allows."""
         if not tools:
             self._suction_budget = 0.0
             return

@@ -15,6 +15,10 @@ class ArchUnavailable(RuntimeError):
     """--arch gpu on a machine without a usable GPU."""
 
 
+OFFLINE_CACHE_BYTES = 1 << 30  # Taichi's compiled kernels on disk: the suite and the bench compile about 150 MB (one
+                               # kernel per field layout); Taichi's default 100 MB evicts kernels a run then compiles again
+
+
 def cache_dir() -> Path:
     """Folder for compiled kernels and derived data (env TISSUE_LAB_CACHE, else ~/.cache/tissue-lab)."""
     root = os.environ.get("TISSUE_LAB_CACHE") or Path.home() / ".cache" / "tissue-lab"
@@ -81,6 +85,7 @@ def init(arch: str = "auto") -> str:
         arch=candidates,
         offline_cache=True,
         offline_cache_file_path=str(cache_dir() / "taichi"),
+        offline_cache_max_size_of_files=OFFLINE_CACHE_BYTES,
         default_fp=ti.f32,
         log_level=ti.ERROR,
         **extra,

@@ -39,7 +39,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--arch", choices=ARCH_CHOICES, default="auto", help="Taichi device: auto (GPU if present, else CPU), cpu or gpu")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
     bench = commands.add_parser("bench", help="measure speed next to error and write DIR/report.md and DIR/results.json")
-    bench.add_argument("--quick", action="store_true", help="fewer sizes and steps (about 4 minutes on 2 cores; the full run takes under 30)")
+    bench.add_argument("--quick", action="store_true", help="fewer sizes and steps (about 3 minutes on 2 cores; the full run takes under 30)")
     from lab.bench import SECTIONS
 
     bench.add_argument("--only", nargs="+", metavar="SECTION", help="run only these sections: " + " ".join(SECTIONS))

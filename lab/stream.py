@@ -60,7 +60,7 @@ JSON 7.9 kB; at the lab's pace (10 updates/s, 2.3 tiles per update on average) 4
 Geometry (KHR_mesh_quantization, listed as required): positions are int16 grid integers of one
 mesh-wide grid (_Grid: node translation plus one uniform scale, so the normals three.js recomputes
 keep their directions and every tile has the same transform), UVs normalized uint16 over the crop,
-no normals or tangents. The normal ghosts (_normal_ghosts) are computed in those integers, and their
+normals declared as an accessor of zeros without bytes (so three.js shades smoothly, not flat) and no tangents. The normal ghosts (_normal_ghosts) are computed in those integers, and their
 morph target moves each ghost corner onto its vertex by an exact int16 delta. This cut a tile's
 geometry from 8.6 to 5.9 kB on the default scene.
 
@@ -90,7 +90,7 @@ _MAX_LEVELS = 255      # the change a tile is taken to have until the stream has
 # a browser left between the stream listing it and sending to it: nothing is lost, it is dropped on the next update
 warnings.filterwarnings("ignore", message="Queued a (GlbMessage|FrameMessage) on a closed connection")
 _LINEAR, _CLAMP = 9729, 33071  # glTF sampler constants
-_SHORT, _UNSIGNED_SHORT, _UNSIGNED_INT = 5122, 5123, 5125  # glTF component types
+_SHORT, _UNSIGNED_SHORT, _UNSIGNED_INT, _FLOAT = 5122, 5123, 5125, 5126  # glTF component types
 _ARRAY_BUFFER, _ELEMENT_ARRAY_BUFFER = 34962, 34963
 _QUANTIZATION = "KHR_mesh_quantization"
 _INT16_LIMIT = 32767   # quantized positions and ghost corners stay in [-32767, 32767]
@@ -198,8 +198,9 @@ class _TileGeometry:
 
     Geometry under KHR_mesh_quantization (DESIGN section 5): POSITION as int16 (not normalized; a 4th short pads each
     vertex to 8 bytes, glTF's 4-byte alignment of vertex attributes) under the node's translation and uniform scale
-    (the mesh-wide _Grid), TEXCOORD_0 as normalized uint16 over the crop; no NORMAL or TANGENT (three.js recomputes the
-    normals and derives the normal map's tangents). The normal ghosts' morph target is a sparse int16 accessor in grid
+    (the mesh-wide _Grid), TEXCOORD_0 as normalized uint16 over the crop; NORMAL as zeros without bytes (the viser client
+    recomputes the normals; without the attribute three.js would flat-shade) and no TANGENT (three.js derives the
+    normal map's tangents). The normal ghosts' morph target is a sparse int16 accessor in grid
     units: a ghost corner plus its delta is its vertex exactly.
     maps: the texture maps the tile carries, in the order of its images: "color", then "normal" and "roughness" if sent.
     even: align the crop box to even texels (the normal and roughness maps go at half resolution)."""
@@ -247,6 +248,12 @@ class _TileGeometry:
         accessors.append({"bufferView": view(st.tobytes(), _ARRAY_BUFFER), "componentType": _UNSIGNED_SHORT,
                           "normalized": True, "count": len(st), "type": "VEC2"})
         attributes["TEXCOORD_0"] = len(accessors) - 1
+        # NORMAL with no bufferView: zeros, and no bytes. three.js's glTF loader flat-shades a primitive without normals
+        # (each triangle lit by its own plane: the mesh's facets show in every sharp highlight, such as wet blood's);
+        # with the attribute present it shades smoothly, and the viser client recomputes its values from the triangles
+        # (the ghosts above make those the whole mesh's)
+        accessors.append({"componentType": _FLOAT, "count": len(positions), "type": "VEC3"})
+        attributes["NORMAL"] = len(accessors) - 1
         accessors.append({"bufferView": view(np.ascontiguousarray(faces, index_dtype).tobytes(), _ELEMENT_ARRAY_BUFFER),
                           "componentType": index_type, "count": int(np.size(faces)), "type": "SCALAR"})
         indices = len(accessors) - 1

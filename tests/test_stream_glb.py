@@ -541,6 +541,9 @@ def test_tile_glb_has_the_maps_crops_quantized_geometry_and_exact_ghosts(server,
     for _, glb in recorder.sent:
         document, _ = glb_parts(glb)
         assert document["extensionsUsed"] == ["KHR_mesh_quantization"] == document["extensionsRequired"]
+        # NORMAL declared as zeros without bytes: three.js shades it smoothly (it flat-shades a primitive without it)
+        normals = document["accessors"][document["meshes"][0]["primitives"][0]["attributes"]["NORMAL"]]
+        assert normals == {"componentType": 5126, "count": len(TileMesh(glb).positions), "type": "VEC3"}
         # the material and its maps
         pbr = document["materials"][0]["pbrMetallicRoughness"]
         assert pbr["metallicFactor"] == 0.0 and pbr["roughnessFactor"] == 1.0

@@ -295,8 +295,8 @@ def surface_map(height: np.ndarray, roughness: np.ndarray) -> np.ndarray:
 
 def healthy_surface(f: dict[str, np.ndarray]) -> np.ndarray:
     """Capsule: lobules bulge slightly between their borders, vessels run in shallow ridges, fine grain; moist, with a
-    broad sheen (roughness 0.45-0.6, lowest where the gloss field is; lower would light the patch mesh's triangles on
-    its bumps, whose vertex normals turn 5-16 degrees per 0.5 mm edge)."""
+    broad sheen (roughness 0.45-0.6, lowest where the gloss field is; chosen while the lab still flat-shaded the patch
+    mesh, whose triangles then showed in sharper highlights)."""
     height = (0.6 * f["lobule_centre"] - 0.8 * f["lobule_edge"] + 0.5 * f["vessel_halo"]
               + 0.1 * f["fine"] + 0.03 * f["grain"])
     return surface_map(height, 0.6 - 0.15 * f["gloss"] + 0.02 * f["fine"])

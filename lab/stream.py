@@ -60,9 +60,10 @@ JSON 7.9 kB; at the lab's pace (10 updates/s, 2.3 tiles per update on average) 4
 Geometry (KHR_mesh_quantization, listed as required): positions are int16 grid integers of one
 mesh-wide grid (_Grid: node translation plus one uniform scale, so the normals three.js recomputes
 keep their directions and every tile has the same transform), UVs normalized uint16 over the crop,
-normals declared as an accessor of zeros without bytes (so three.js shades smoothly, not flat) and no tangents. The normal ghosts (_normal_ghosts) are computed in those integers, and their
-morph target moves each ghost corner onto its vertex by an exact int16 delta. This cut a tile's
-geometry from 8.6 to 5.9 kB on the default scene.
+normals declared as an accessor of zeros without bytes (so three.js shades smoothly, not flat) and no
+tangents. The normal ghosts (_normal_ghosts) are computed in those integers, and their morph target
+moves each ghost corner onto its vertex by an exact int16 delta. This cut a tile's geometry from 8.6
+to 5.9 kB on the default scene.
 
 Call `update` and `close` from one thread (the simulation thread); a lock makes a `close` from
 another thread safe too.

@@ -38,6 +38,7 @@ texture rectangle). The velocity then comes from the clamped displacement, so th
 wall is removed and the tangential part kept (a free-slip, inelastic wall). It is a compile-time switch
 (ti.static): with walls off the kernels are exactly the ones without this feature.
 """
+import functools
 import math
 
 import numpy as np
@@ -61,16 +62,24 @@ PARTICLE_LOOP_ITEMS = 0.8   # a particle weighs this many work items of backend.
                             # launching thread below about 10,000 particles, where waking the thread pool for each of a
                             # substep's loops costs more than the second thread gains (median of 200 steps, 2 threads:
                             # 2.98 ms serial against 3.43 parallel at 5,000; 5.63 both at 10,000; 8.5 against 5.5 at 15,000)
+SQRT_HALF = math.sqrt(0.5)
+COINCIDENT = 1e-6            # pairs closer than this many interaction radii are coincident (_relax)
 MAX_RELAX_FRACTION = 0.5    # largest relaxation displacement per substep, in interaction radii
 WALL_MARGIN = 1e-3          # walls keep particles this far (texels) inside the border of a valid texel
 KEYS = ("spawned", "suctioned", "left_surface", "expired", "dropped_pool_full")
 PREDICT, SORT, DENSITY, RELAX, FINISH = (1 << bit for bit in range(5))  # the passes of a substep
 SUBSTEP = PREDICT | SORT | DENSITY | RELAX | FINISH
 PASS_NAMES = {PREDICT: "predict", SORT: "sort", DENSITY: "density", RELAX: "relax", FINISH: "finish"}
+STEP_VALUES = ("dt", "size_x", "size_y", "h", "nu", "film", "rest", "pinning", "lifetime", "push", "push_near", "inertia",
+               "max_speed", "clotting", "rest_speed", "sigma", "beta", "half_dt", "inv_h2", "coincident")
+# a substep's scalars (_substep), in step_values; products of parameters are taken on the host, once, so that no kernel
+# multiplies two of them: LLVM may reorder such a product differently in the serial and the parallel launch
 
 
+@functools.lru_cache(maxsize=64)
 def lattice_density(spacing_mm: float, radius_mm: float) -> float:
-    """Clavet density sum (1 - r/h)^2 over the neighbours of a particle in a hexagonal lattice."""
+    """Clavet density sum (1 - r/h)^2 over the neighbours of a particle in a hexagonal lattice (cached: the step asks
+    for it every time, and a sum over about 80 lattice points costs 25 us, a twentieth of a 1,000-particle step)."""
     reach = int(math.ceil(radius_mm / spacing_mm)) + 1
     total = 0.0
     for i in range(-reach, reach + 1):
@@ -157,6 +166,8 @@ class Bleeding:
         self.sorted = ti.field(ti.i32, capacity)
         self.counters = ti.field(ti.i32, 8)
         self.alive_count = ti.field(ti.i32, ())                # particles in use: the first alive_count of the pool
+        self.step_values = ti.field(ti.f32, len(STEP_VALUES))  # STEP_VALUES, written when they change (a kernel
+        self._step_values_written = None                       # argument costs about 1 us of every launch)
         self.suction_tools = ti.Vector.field(4, ti.f32, MAX_SUCTION_TOOLS)  # x, y, z (mm), radius (mm)
         self.suction_candidates = ti.field(ti.i32, ())
         self.splatter = ParticleSplat(surface)
@@ -296,59 +307,62 @@ class Bleeding:
             nu = p["blood_viscosity_mpa_s"] * 1e-3 / p["blood_density_kg_m3"] * 1e6  # mm^2/s
             rest = self.rest_density
             serial = backend.serial(PARTICLE_LOOP_ITEMS * n)
-            values = (n, sub, size[0], size[1], h, nu, p["film_thickness_mm"], rest, p["pinning_density"] * rest,
-                      p["lifetime_s"], p["stiffness_mm_s2"], p["near_stiffness_mm_s2"], p["inertia"], p["max_speed_mm_s"],
-                      p["clotting_rate_1_s"], p["rest_speed_mm_s"], p["viscosity_sigma_1_s"], p["viscosity_beta_s_mm"])
+            push = sub / SQRT_HALF  # the pressures' factor in _relax's sum (its docstring)
+            values = (sub, size[0], size[1], h, nu, p["film_thickness_mm"], rest, p["pinning_density"] * rest,
+                      p["lifetime_s"], push * p["stiffness_mm_s2"], push * p["near_stiffness_mm_s2"], p["inertia"],
+                      p["max_speed_mm_s"], p["clotting_rate_1_s"], p["rest_speed_mm_s"], sub * p["viscosity_sigma_1_s"],
+                      sub * p["viscosity_beta_s_mm"] * SQRT_HALF, 0.5 * sub, SQRT_HALF / h, COINCIDENT * h / SQRT_HALF)
+            if values != self._step_values_written:
+                self.step_values.from_numpy(np.array(values, np.float32))
+                self._step_values_written = values
             tools = active_suction(suction)
             if serial and not self.separate_passes:  # the whole step in one launch (two while a suction tool is on)
-                count = self._passes(SUBSTEP, True, substeps, not tools, *values)
+                count = self._passes(SUBSTEP, True, substeps, not tools, n)
                 if tools:
                     self._apply_suction(dt_s, tools)
-                    count = self._passes(SUBSTEP, True, 0, True, *values)
+                    count = self._passes(SUBSTEP, True, 0, True, n)
             else:
                 for _ in range(substeps):
                     for passes in PASS_NAMES if self.separate_passes else (SUBSTEP,):
-                        self._passes(passes, serial, 1, False, *values)
+                        self._passes(passes, serial, 1, False, n)
                 self._apply_suction(dt_s, tools)
-                count = self._passes(SORT, serial, 1, False, *values)
+                count = self._passes(SORT, serial, 1, False, n)
             self.count = count  # the last sort dropped those that left in the last substep or to suction
         self.step_index += 1
 
     @ti.kernel
-    def _passes(self, passes: ti.template(), serial: ti.template(), substeps: ti.i32, last_sort: ti.i32, n: ti.i32,
-                dt: ti.f32, size_x: ti.f32, size_y: ti.f32, h: ti.f32, nu: ti.f32, film: ti.f32, rest: ti.f32, pinning: ti.f32,
-                lifetime: ti.f32, k: ti.f32, k_near: ti.f32, inertia: ti.f32, max_speed: ti.f32, clotting: ti.f32,
-                rest_speed: ti.f32, sigma: ti.f32, beta: ti.f32) -> ti.i32:
-        """The passes in `passes` (bits PREDICT ... FINISH) in the order of a substep, in one launch; returns the alive
-        count. Parallel: one substep, each pass's loops one after the other as separate kernels would run them.
-        serial (small pools, PARTICLE_LOOP_ITEMS): the launch is one task on the launching thread that runs `substeps`
-        substeps, then the sort if last_sort, so a whole step is one launch (a launch with these arguments costs
-        about 40 us from Python, a tenth of a 1,000-particle step)."""
+    def _passes(self, passes: ti.template(), serial: ti.template(), substeps: ti.i32, last_sort: ti.i32,
+                n: ti.i32) -> ti.i32:
+        """The passes in `passes` (bits PREDICT ... FINISH) in the order of a substep, in one launch, with the scalars
+        in step_values; returns the alive count. Parallel: one substep, each pass's loops one after the other as
+        separate kernels would run them. serial (small pools, PARTICLE_LOOP_ITEMS): the launch is one task on the
+        launching thread that runs `substeps` substeps, then the sort if last_sort, so a whole step is one launch (a
+        launch costs 16 us from Python with no argument, 42 with the 18 this one had before step_values)."""
         if ti.static(serial):
             ti.loop_config(serialize=True)
             for _ in range(1):  # one serial task: the passes' loops run inside it, in order
+                values = [self.step_values[index] for index in ti.static(range(len(STEP_VALUES)))]
                 for _substep in range(substeps):
-                    self._substep(passes, serial, n, dt, size_x, size_y, h, nu, film, rest, pinning, lifetime, k, k_near,
-                                  inertia, max_speed, clotting, rest_speed, sigma, beta)
+                    self._substep(passes, serial, n, *values)
                 if last_sort:
-                    self._sort(serial, n, size_x, size_y)
+                    self._sort(serial, n, values[1], values[2])
         else:
-            self._substep(passes, serial, n, dt, size_x, size_y, h, nu, film, rest, pinning, lifetime, k, k_near, inertia,
-                          max_speed, clotting, rest_speed, sigma, beta)
+            self._substep(passes, serial, n, *[self.step_values[index] for index in ti.static(range(len(STEP_VALUES)))])
         return self.alive_count[None]
 
     @ti.func
     def _substep(self, passes: ti.template(), serial: ti.template(), n, dt, size_x, size_y, h, nu, film, rest, pinning,
-                 lifetime, k, k_near, inertia, max_speed, clotting, rest_speed, sigma, beta):
-        """The passes in `passes`, in the order of a substep."""
+                 lifetime, push, push_near, inertia, max_speed, clotting, rest_speed, sigma, beta, half_dt, inv_h2,
+                 coincident):
+        """The passes in `passes`, in the order of a substep (the scalars: STEP_VALUES)."""
         if ti.static(passes & PREDICT):
             self._predict(serial, n, dt, nu, film, rest, pinning, lifetime)
         if ti.static(passes & SORT):
             self._sort(serial, n, size_x, size_y)
         if ti.static(passes & DENSITY):
-            self._density_pass(serial, n, h, rest, k, k_near)
+            self._density_pass(serial, n, rest, push, push_near, inv_h2)
         if ti.static(passes & RELAX):
-            self._relax(serial, n, dt, h, sigma, beta)
+            self._relax(serial, n, dt, h, sigma, beta, half_dt, inv_h2, coincident)
         if ti.static(passes & FINISH):
             self._finish(serial, n, dt, inertia, max_speed, clotting, rest_speed)
 
@@ -553,68 +567,79 @@ class Bleeding:
         return ti.max(m[0] * v[0] * v[0] + 2.0 * m[1] * v[0] * v[1] + m[2] * v[1] * v[1], 0.0)
 
     @ti.func
-    def _pair(self, i, xi, mi, j, hi, inv_h):
-        """Grid offset d = x_j - x_i, g = m d with m the pair's mean metric, distance r = sqrt(d.g) (mm), kernel weight
-        q = 1 - r/h; q and d are 0 for j == i, r >= h or j >= hi (past the run). xi, mi: particle i's position and
-        metric, held in registers over its candidates."""
-        valid = (j != i) & (j < hi)
-        d = ti.select(valid, self.pos[j] - xi, 0.0)
-        m = 0.5 * (mi + self.metric[j])
+    def _pair(self, xi, mi, j, hi, inv_h2):
+        """Grid offset d = x_j - x_i, g = (m_i + m_j) d, s = sqrt(d.g) and kernel weight q = 1 - s inv_h2, 0 for
+        j >= hi (past the run) or out of range. m_i + m_j is twice the pair's mean metric, so s = sqrt(2) r with r the
+        distance in mm, and inv_h2 = 1 / (sqrt(2) h) (one product fewer per pair than the mean). j == i gives d = 0 and
+        q = 1: the passes take i itself out after its walk rather than test every candidate. xi, mi: particle i's
+        position and metric, held in registers over its candidates."""
+        d = self.pos[j] - xi
+        m = mi + self.metric[j]
         g = ti.Vector([m[0] * d[0] + m[1] * d[1], m[1] * d[0] + m[2] * d[1]])
-        r = ti.sqrt(ti.max(d.dot(g), 0.0))
-        q = ti.select(valid, ti.max(1.0 - r * inv_h, 0.0), 0.0)
-        return d, r, q, g
+        s = ti.sqrt(ti.max(d.dot(g), 0.0))
+        q = ti.select(j < hi, ti.max(1.0 - s * inv_h2, 0.0), 0.0)
+        return d, s, q, g
 
     @ti.func
-    def _density_pass(self, serial: ti.template(), n, h, rest, k, k_near):
-        """Density and near density over the candidates in range."""
+    def _walks_itself(self, i, lo, hi):
+        """1 if particle i is among its own candidates (the middle run; always, unless MAX_CANDIDATES cut it), else 0."""
+        return ti.cast((lo[1] <= i) & (i < hi[1]), ti.i32)
+
+    @ti.func
+    def _density_pass(self, serial: ti.template(), n, rest, push, push_near, inv_h2):
+        """Density and near density over the candidates in range; pressure and near pressure stored times
+        dt / SQRT_HALF (push, push_near: the stiffnesses times that), the factor _relax's sum needs."""
         ti.loop_config(serialize=serial)
         for i in range(n):
             if i < self.alive_count[None]:
-                rho, rho_near = 0.0, 0.0
                 lo, hi = self._candidates(i)
                 xi, mi = self.pos[i], self.metric[i]
+                rho = rho_near = -ti.cast(self._walks_itself(i, lo, hi), ti.f32)  # i itself adds q = 1
                 for t in range(self._span(lo, hi)):
                     for run in ti.static(range(3)):
-                        _d, _r, q, _g = self._pair(i, xi, mi, lo[run] + t, hi[run], 1.0 / h)
+                        _d, _s, q, _g = self._pair(xi, mi, lo[run] + t, hi[run], inv_h2)
                         rho += q * q
                         rho_near += q * q * q
                 self.density[i] = ti.Vector([rho, rho_near])
-                self.pressure[i] = ti.Vector([k * (rho - rest), k_near * rho_near])
+                self.pressure[i] = ti.Vector([push * (rho - rest), push_near * rho_near])
 
     @ti.func
-    def _relax(self, serial: ti.template(), n, dt, h, sigma, beta):
-        """Double density relaxation, symmetric gather: each pair moves i by -dt^2/2 (P_i + P_j)(...) r_hat; and
+    def _relax(self, serial: ti.template(), n, dt, h, sigma, beta, half_dt, inv_h2, coincident):
+        """Double density relaxation, symmetric gather: each pair moves i by -dt^2/2 (P_i + P_j)(q, q^2) r_hat; and
         Clavet's viscosity in the same walk: an approaching pair (speed u along r_hat) changes v_i by -min(I, u)/2 r_hat,
-        I = dt q (sigma u + beta u^2), which moves i by that times dt (one pair walk fewer than a pass of its own)."""
+        I = dt q (sigma u + beta u^2), which moves i by that times dt (one pair walk fewer than a pass of its own).
+        Both in one sum, in _pair's units (s = sqrt(2) r, g = 2 G d, so r_hat = sqrt(2) d / s and u = U / sqrt(2) with
+        U = (v_i - v_j).g / s): i moves by -dt/2 sum (q (P'_i + P'_j).(1, q) + min(sqrt(2) I, U) if U > 0) d / s, where
+        P' = sqrt(2) dt P (_density_pass stores it) and sqrt(2) I = q U (sigma + beta U), sigma and beta here being dt
+        sigma and dt beta / sqrt(2) (host products, STEP_VALUES). Pairs with s at most `coincident` are separated
+        along a hashed direction instead."""
         ti.loop_config(serialize=serial)
         for i in range(n):
             if i < self.alive_count[None]:
-                shift, slow = ti.Vector([0.0, 0.0]), ti.Vector([0.0, 0.0])
-                coincident = 0
+                shift = ti.Vector([0.0, 0.0])
                 lo, hi = self._candidates(i)
                 xi, mi, pi, vi = self.pos[i], self.metric[i], self.pressure[i], self.vel[i]
+                close = -ti.cast(self._walks_itself(i, lo, hi), ti.f32)  # i itself (s = 0, q = 1) is summed below
                 for t in range(self._span(lo, hi)):
                     for run in ti.static(range(3)):
                         j = lo[run] + t
-                        d, r, q, g = self._pair(i, xi, mi, j, hi[run], 1.0 / h)
+                        d, s, q, g = self._pair(xi, mi, j, hi[run], inv_h2)
                         p = pi + self.pressure[j]
-                        push = 0.5 * dt * dt * (p[0] * q + p[1] * q * q)  # mm along r_hat
-                        apart = r > 1e-6 * h
-                        inv_r = ti.select(apart, 1.0 / r, 0.0)
-                        shift -= push * inv_r * d
-                        u = (vi - self.vel[j]).dot(g) * inv_r  # approach speed along r_hat, mm/s
-                        impulse = dt * q * (sigma * u + beta * u * u)
-                        slow -= ti.select(u > 0.0, 0.5 * ti.min(impulse, u) * inv_r, 0.0) * d
-                        coincident += ti.cast((q > 0.0) & (not apart), ti.i32)
-                if coincident:  # rare: separate coincident pairs along a deterministic direction
+                        apart = s > coincident
+                        inv_s = ti.select(apart, 1.0 / s, 0.0)
+                        approach = (vi - self.vel[j]).dot(g) * inv_s  # sqrt(2) times the approach speed, mm/s
+                        impulse = q * approach * (sigma + beta * approach)
+                        w = q * (p[0] + p[1] * q) + ti.select(approach > 0.0, ti.min(impulse, approach), 0.0)
+                        shift -= (w * inv_s) * d
+                        close += ti.select(apart, 0.0, q)
+                shift *= half_dt
+                if close > 0.0:  # rare: separate coincident pairs along a deterministic direction
                     for run in ti.static(range(3)):
                         for j in range(lo[run], hi[run]):
-                            _d, r, q, _g = self._pair(i, xi, mi, j, hi[run], 1.0 / h)
-                            if q > 0.0 and r <= 1e-6 * h:
+                            _d, s, q, _g = self._pair(xi, mi, j, hi[run], inv_h2)
+                            if q > 0.0 and s <= coincident and j != i:
                                 angle = 2.0 * math.pi * hash01(ti.u32(self.uid[i]), ti.u32(self.uid[j]))
                                 shift -= 0.05 * h * ti.Vector([ti.cos(angle), ti.sin(angle)]) / ti.sqrt(mi[0] + mi[2])
-                shift += slow * dt
                 damping = self.drag[i] * dt  # pressure moves the film against the same drag as gravity
                 if damping > 1e-6:
                     shift *= (1.0 - ti.exp(-damping)) / damping

@@ -571,8 +571,9 @@ class Bleeding:
         """Grid offset d = x_j - x_i, g = (m_i + m_j) d, s = sqrt(d.g) and kernel weight q = 1 - s inv_h2, 0 for
         j >= hi (past the run) or out of range. m_i + m_j is twice the pair's mean metric, so s = sqrt(2) r with r the
         distance in mm, and inv_h2 = 1 / (sqrt(2) h) (one product fewer per pair than the mean). j == i gives d = 0 and
-        q = 1: the passes take i itself out after its walk rather than test every candidate. xi, mi: particle i's
-        position and metric, held in registers over its candidates."""
+        q = 1: the passes take i itself out after its walk rather than test every candidate. Past hi the walks read
+        other particles or the pool's tail (finite: every slot holds zeros or a copy of an earlier particle) and weigh
+        them 0. xi, mi: particle i's position and metric, held in registers over its candidates."""
         d = self.pos[j] - xi
         m = mi + self.metric[j]
         g = ti.Vector([m[0] * d[0] + m[1] * d[1], m[1] * d[0] + m[2] * d[1]])

@@ -271,6 +271,24 @@ def test_every_slider_at_each_end(patch_256, end):
         assert_bounded(bleeding, bleeding.params["max_speed_mm_s"], name)
 
 
+def test_a_parameter_changed_between_steps_acts_at_the_next_step(patch_256):
+    """The step's scalars sit on the device and are written only when they change (sims.sph.STEP_VALUES): a slider
+    moved between two steps acts at the next one."""
+    same, changed = (bleeding_on(patch_256, capacity=1000) for _ in range(2))
+    for pool in (same, changed):
+        pool.spawn((128, 128), 400, 1.0)
+        run_steps(pool, 10, 0.01)
+    assert np.array_equal(same.pos.to_numpy(), changed.pos.to_numpy())
+    changed.params["stiffness_mm_s2"] = params.BLEEDING["stiffness_mm_s2"].max
+    for pool in (same, changed):
+        pool.step(0.01)
+    assert not np.array_equal(same.pos.to_numpy()[:400], changed.pos.to_numpy()[:400])
+    changed.params["lifetime_s"] = params.BLEEDING["lifetime_s"].min  # 0.1 s: the blood is 0.11 s old
+    changed.step(0.01)
+    counts = assert_accounting(changed)
+    assert counts["alive"] == 0 and counts["expired"] > 0, counts
+
+
 def test_a_pool_of_a_million_particles_takes_under_300_mb(patch_256):
     """The fields sized by the pool grow linearly: bytes per particle x 1M (issue 13)."""
     per_particle = bleeding_on(patch_256, capacity=1000).memory_bytes()["particles"] / 1000

@@ -341,14 +341,19 @@ class Bleeding:
         if ti.static(serial):
             ti.loop_config(serialize=True)
             for _ in range(1):  # one serial task: the passes' loops run inside it, in order
-                values = [self.step_values[index] for index in ti.static(range(len(STEP_VALUES)))]
+                values = self._step_scalars()
                 for _substep in range(substeps):
                     self._substep(passes, serial, n, *values)
                 if last_sort:
                     self._sort(serial, n, values[1], values[2])
         else:
-            self._substep(passes, serial, n, *[self.step_values[index] for index in ti.static(range(len(STEP_VALUES)))])
+            self._substep(passes, serial, n, *self._step_scalars())
         return self.alive_count[None]
+
+    @ti.func
+    def _step_scalars(self):
+        """The values of step_values, in the order of STEP_VALUES (_substep's arguments after n)."""
+        return [self.step_values[index] for index in ti.static(range(len(STEP_VALUES)))]
 
     @ti.func
     def _substep(self, passes: ti.template(), serial: ti.template(), n, dt, size_x, size_y, h, nu, film, rest, pinning,
@@ -583,8 +588,9 @@ class Bleeding:
 
     @ti.func
     def _walks_itself(self, i, lo, hi):
-        """1 if particle i is among its own candidates (the middle run; always, unless MAX_CANDIDATES cut it), else 0."""
-        return ti.cast((lo[1] <= i) & (i < hi[1]), ti.i32)
+        """1.0 if particle i is among its own candidates (the middle run; always, unless MAX_CANDIDATES cut it), else 0.0:
+        the q = 1 its walk adds for itself."""
+        return ti.cast((lo[1] <= i) & (i < hi[1]), ti.f32)
 
     @ti.func
     def _density_pass(self, serial: ti.template(), n, rest, push, push_near, inv_h2):
@@ -595,7 +601,7 @@ class Bleeding:
             if i < self.alive_count[None]:
                 lo, hi = self._candidates(i)
                 xi, mi = self.pos[i], self.metric[i]
-                rho = rho_near = -ti.cast(self._walks_itself(i, lo, hi), ti.f32)  # i itself adds q = 1
+                rho = rho_near = -self._walks_itself(i, lo, hi)  # i itself adds q = 1
                 for t in range(self._span(lo, hi)):
                     for run in ti.static(range(3)):
                         _d, _s, q, _g = self._pair(xi, mi, lo[run] + t, hi[run], inv_h2)
@@ -620,7 +626,7 @@ class Bleeding:
                 shift = ti.Vector([0.0, 0.0])
                 lo, hi = self._candidates(i)
                 xi, mi, pi, vi = self.pos[i], self.metric[i], self.pressure[i], self.vel[i]
-                close = -ti.cast(self._walks_itself(i, lo, hi), ti.f32)  # i itself (s = 0, q = 1) is summed below
+                close = -self._walks_itself(i, lo, hi)  # i itself (s = 0, q = 1) is summed below
                 for t in range(self._span(lo, hi)):
                     for run in ti.static(range(3)):
                         j = lo[run] + t

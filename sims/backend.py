@@ -82,6 +82,7 @@ def init(arch: str = "auto") -> str:
     extra = {"cpu_max_num_threads": int(threads)} if threads else {}
     if os.environ.get("TISSUE_LAB_QUICK_COMPILE") == "1":  # the tests: without Taichi's advanced IR optimisation a
         extra["advanced_optimization"] = False             # scene compiles in 2/3 of the time (steps about as fast)
+    _remember_source_positions()
     ti.set_logging_level(ti.ERROR)  # the fallback to CPU is expected, not a warning for the user
     ti.init(
         arch=candidates,
@@ -96,6 +97,34 @@ def init(arch: str = "auto") -> str:
     if arch == "gpu" and _started_arch in CPU_ARCHS:
         raise ArchUnavailable("--arch gpu: no CUDA or Vulkan device found (use --arch auto or cpu)")
     return _started_arch
+
+
+def _remember_source_positions() -> None:
+    """Make Taichi build each kernel line's source-position text once per process instead of at every compile.
+
+    Taichi's front end renders, for every statement and expression of a kernel it compiles, a caret-marked copy of the
+    source line for its error messages (`get_pos_info`, wrapped to 80 columns by textwrap), and compiles each kernel
+    again for every field it is handed and after every runtime restart: that text was 30-40 % of the time a warm-cache
+    test module spent compiling. The text depends only on the node's place in the file, so it is kept by that place;
+    the messages are unchanged."""
+    from taichi.lang.ast import ast_transformer_utils as utils
+
+    context = utils.ASTTransformerContext
+    if getattr(context.get_pos_info, "remembers", False):
+        return
+    render, texts = context.get_pos_info, {}
+
+    def get_pos_info(self, node):
+        body = getattr(node, "body", None)
+        place = (self.file, self.lineno_offset, self.func.func.__name__, self.indent, type(node).__name__, node.lineno,
+                 node.end_lineno, node.col_offset, node.end_col_offset, body[0].lineno if isinstance(body, list) and body else None)
+        text = texts.get(place)
+        if text is None:
+            text = texts[place] = render(self, node)
+        return text
+
+    get_pos_info.remembers = True
+    context.get_pos_info = get_pos_info
 
 
 def serial(items: int) -> bool:

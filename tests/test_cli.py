@@ -195,6 +195,34 @@ def test_a_restarted_runtime_stays_on_its_device_and_starts_empty():
     assert after.to_numpy().tolist() == [2.0] * 4 and ti.lang.impl.get_runtime().prog.get_snode_tree_size() < trees
 
 
+def test_a_kernel_compiled_again_points_its_mistake_at_its_own_line():
+    """Taichi's source-position text is remembered by place (sims.backend): a kernel compiled again for another field
+    still marks its own line and name, and a kernel whose mistake sits at the same place in its body (same length of
+    name, same columns) gets its own line, not the other's."""
+    import taichi as ti
+
+    from sims import backend
+
+    backend.init("cpu")
+
+    @ti.kernel
+    def add_unknown(a: ti.template()):
+        a[None] += unknown_amount  # noqa: F821
+
+    @ti.kernel
+    def scale_unknown(a: ti.template()):
+        a[None] *= unknown_factor  # noqa: F821
+
+    messages = []
+    for kernel in (add_unknown, scale_unknown, add_unknown):
+        with pytest.raises(ti.TaichiNameError) as error:
+            kernel(ti.field(ti.f32, shape=()))
+        messages.append(str(error.value))
+    assert "a[None] += unknown_amount" in messages[0] and "^^^^^^^^^^^^^^" in messages[0]
+    assert "a[None] *= unknown_factor" in messages[1] and "unknown_amount" not in messages[1]
+    assert messages[2] == messages[0]
+
+
 def test_non_finite_state_stops_the_run_naming_field_and_step(tmp_path, monkeypatch, capsys):
     from sims.scene import Scene
 

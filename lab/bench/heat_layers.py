@@ -133,7 +133,7 @@ def cost_against_activity(sizes=(256, 512, 1024), side_mm: float = 24.0, steps: 
 def run(quick: bool) -> dict:
     from lab.bench.heat_reference import ball_contact_reference
 
-    end = 12.0 if quick else 62.0
+    end = 7.0 if quick else 62.0  # quick: one sample after lift-off
     times = tuple(t for t in SAMPLE_TIMES_S if t <= end)
     reference = ball_contact_reference(grid_mm=0.05 if quick else 0.025, end_s=end, sample_times_s=times)
     reference.pop("history")
@@ -155,7 +155,7 @@ def run(quick: bool) -> dict:
         "runs": rows,
         "pareto": [(r["layers"], r["size"]) for r in pareto(rows)],
         "sleeping": sleeping,
-        "depth_against_contact": depth_against_contact(contacts_s=(1.0, 2.0), size=64) if quick else depth_against_contact(),
+        "depth_against_contact": depth_against_contact(tips_c=(250.0,), contacts_s=(1.0, 2.0), size=64) if quick else depth_against_contact(),
         "cost": cost_against_activity(sizes=(256,) if quick else (256, 512, 1024), steps=20 if quick else 100),
     }
 

@@ -467,8 +467,7 @@ class Bleeding:
         checked their texel yet)."""
         ti.loop_config(serialize=serial)
         for i in range(n):
-            if i < self.alive_count[None]:
-                self.texel_moved[i] = 0
+            marked = 0
             if i < self.alive_count[None] and self.fate[i] == ALIVE:
                 g = self.gravity[i]
                 rho = self.density[i][0]
@@ -489,10 +488,11 @@ class Bleeding:
                 self.pos[i] += v * dt
                 if ti.static(self.walls):
                     self.pos[i] = self._keep_inside(self.pos[i])
-                self.texel_moved[i] = ti.max(ti.cast(self.age[i] == 0.0, ti.i32), self._entered_another_texel(i, before))
+                marked = ti.max(ti.cast(self.age[i] == 0.0, ti.i32), self._entered_another_texel(i, before))
                 self.age[i] += dt
                 if self.age[i] > lifetime:
                     self.fate[i] = EXPIRED
+            self.texel_moved[i] = marked
         self._relocate_marked(serial, n)
 
     @ti.func

@@ -38,7 +38,7 @@ import math
 import numpy as np
 import taichi as ti
 
-from sims import layers
+from sims import field_io, layers
 from sims.seams import seam_links
 from sims.tiles import TILE, WAKE_HALO_TEXELS, TileSchedule, tile_spheres
 
@@ -179,7 +179,6 @@ class Cautery:
         self.down = ti.field(ti.f32, count)
         self.pivot = ti.field(ti.f32, (count + 1, count))
         self.carry = ti.field(ti.f32, (count + 1, count))
-        self.centre_mm.from_numpy(self.layer_depth_mm.astype(np.float32))
         self.rates = ti.field(ti.f32, RATE_ENTRIES)  # dOmega/dt (1/s) at t_damage + i RATE_STEP_C
         self._rates_key = None
         coefficients = direction_coefficients(surface.metric, surface.mask)
@@ -188,26 +187,20 @@ class Cautery:
         self.seam_links = len(link_to) // 2  # texel pairs linked across UV seams
         self.link_start = ti.field(ti.i32, len(link_start))
         self.link_to, self.link_weight = ti.field(ti.i32, max(len(link_to), 1)), ti.field(ti.f32, max(len(link_to), 1))
-        self.link_start.from_numpy(link_start)
-        if len(link_to):
-            self.link_to.from_numpy(link_to)
-            self.link_weight.from_numpy(link_weight)
         area = surface.texel_area_mm2
         inv_area = np.where(surface.mask, 1.0 / np.where(surface.mask, area, 1.0), 0.0).astype(np.float32)
         link_sum = np.bincount(np.repeat(np.arange(len(link_start) - 1), np.diff(link_start)), weights=link_weight,
                                minlength=len(link_start) - 1).reshape(shape)
         self.max_exchange_1_mm2 = float(((weights.sum(axis=2) + link_sum) * inv_area).max())  # max over texels of sum(w)/A
-        self.mask.from_numpy(surface.mask.astype(np.int32))
-        self.inv_area.from_numpy(inv_area)
-        self.weights.from_numpy(weights)
-        self.position.from_numpy(surface.position_mm)
         self.tiles = TileSchedule(surface.mask, link_start, link_to, count)
         centre, radius = tile_spheres(surface.position_mm, surface.mask)
         self.tile_centre = ti.Vector.field(3, ti.f32, self.tiles.tiles)
         self.tile_radius = ti.field(ti.f32, self.tiles.tiles)
         self.tile_near = ti.field(ti.i32, self.tiles.tiles)  # 1: an energized tool within reach this step
-        self.tile_centre.from_numpy(centre)
-        self.tile_radius.from_numpy(radius)
+        field_io.load([(self.centre_mm, self.layer_depth_mm), (self.link_start, link_start), (self.mask, surface.mask),
+                       (self.inv_area, inv_area), (self.weights, weights), (self.position, surface.position_mm),
+                       (self.tile_centre, centre), (self.tile_radius, radius)]
+                      + ([(self.link_to, link_to), (self.link_weight, link_weight)] if len(link_to) else []))
         if scheme == "implicit":  # CG work fields (one layer at a time): layer, increment d, residual r, z, p (2), q
             self.layer = ti.field(ti.f32, shape)
             self.delta, self.residual, self.precond = ti.field(ti.f32, shape), ti.field(ti.f32, shape), ti.field(ti.f32, shape)
@@ -299,9 +292,8 @@ class Cautery:
         self._column_key = key
         up, down, pivot, carry = layers.elimination_tables(self.faces_mm, self.bottom, sub_s, self.diffusivity_mm2_s,
                                                            self.perfusion_rate_1_s)
-        for field, values in ((self.up, up), (self.down, down), (self.pivot, pivot), (self.carry, carry)):
-            field.from_numpy(values.astype(np.float32))
-        self.rest.from_numpy(self.rest_profile_c().astype(np.float32))
+        field_io.load([(self.up, up), (self.down, down), (self.pivot, pivot), (self.carry, carry),
+                       (self.rest, self.rest_profile_c())])
         self._wake_everything()
 
     def rest_profile_c(self) -> np.ndarray:
@@ -315,23 +307,25 @@ class Cautery:
         """t = 0: every layer at its rest temperature shifted by initial - body temperature, no damage or char."""
         t = self.tissue
         start = self.rest_profile_c() + (t["initial_temperature_c"] - t["body_temperature_c"])
-        self.set_temperature(np.broadcast_to(start[:, None, None], (self.layer_count,) + self.surface.mask.shape))
-        for field in (self.omega_depth, self.char_depth, self.omega, self.char, self.coagulation_depth):
-            field.fill(0.0)
+        self.set_temperature(np.broadcast_to(start[:, None, None], (self.layer_count,) + self.surface.mask.shape),
+                             also=[(field, 0.0) for field in (self.omega_depth, self.char_depth, self.omega, self.char,
+                                                              self.coagulation_depth)])
 
-    def set_temperature(self, values: np.ndarray) -> None:
-        """Set T in C: (H, W) for every layer alike, or (L, H, W) per layer (masked texels stay 0). Wakes every tile."""
+    def set_temperature(self, values: np.ndarray, also=()) -> None:
+        """Set T in C: (H, W) for every layer alike, or (L, H, W) per layer (masked texels stay 0). Wakes every tile.
+        also: more (field, value) pairs loaded in the same launch (sims.field_io.load)."""
         values = np.asarray(values, np.float32)
         if values.ndim == 2:
             values = np.broadcast_to(values, (self.layer_count,) + values.shape)
         mask = self.surface.mask
         self.current = 0
         columns = _flat_columns(np.where(mask[None], values, 0.0))
-        self.temperature.from_numpy(np.stack([columns, columns]))
-        self.surface_temperature.from_numpy(np.where(mask, values[0], 0.0).astype(np.float32))
-        self._wake_everything()
+        pairs = [(self.temperature, np.stack([columns, columns])), (self.surface_temperature, np.where(mask, values[0], 0.0)),
+                 *also]
         if self.scheme == "implicit":
-            self.delta.fill(0.0)  # the implicit solve starts from the last increment; a new state from 0
+            pairs.append((self.delta, 0.0))  # the implicit solve starts from the last increment; a new state from 0
+        field_io.load(pairs)
+        self._wake_everything()
 
     def _wake_everything(self) -> None:
         """The next step steps every tile at full depth, and every tile counts as changed for the look."""

@@ -32,6 +32,7 @@ import numpy as np
 import taichi as ti
 from PIL import Image
 
+from sims import field_io
 from sims.backend import row_span
 from sims.display_tiles import BLOOD_COLUMNS, BLOOD_ROWS, BLOOD_SAMPLE, NORMAL, TISSUE, WRITE
 
@@ -125,25 +126,18 @@ class Composer:
         count = len(stages)
         height, width = fill_index.shape
         self.textures = ti.Vector.field(3, ti.f32, (count, height, width))
-        self.textures.from_numpy(np.stack(textures).astype(np.float32))
         self.surfaces = ti.Vector.field(2, ti.f32, (count, height, width))
-        self.surfaces.from_numpy(np.stack(surfaces).astype(np.float32))
         self.ranges = ti.Vector.field(3, ti.f32, count)  # from, to, opacity
         # the fields each stage reads, fixed when the kernels compile: each texel samples only the fields in use
         self.codes = tuple(FIELD_CODES[stage["field"]] if stage["field"] else -1 for stage in stages)
         self.reads = tuple(code in self.codes[1:] for code in range(len(FIELD_CODES)))
         self.reads_omega = self.reads[FIELD_CODES["coagulation"]] or self.reads[FIELD_CODES["omega"]]
         self.shows_temperature = self.reads[FIELD_CODES["temperature_c"]]  # else only damage and char change the look
-        self.ranges.from_numpy(np.array([[stage["from"], stage["to"], stage["opacity"]] for stage in stages], np.float32))
         self.fill = ti.field(ti.i32, (height, width))
-        self.fill.from_numpy(fill_index.astype(np.int32))
         self.color = ti.Vector.field(3, ti.f32, (height, width))    # tissue colour (sRGB, 0-1) at surface texels
-        self.color.from_numpy(textures[0].astype(np.float32))
         self.color_linear = ti.Vector.field(3, ti.f32, (height, width))  # the same in linear light
         self.encode = ti.field(ti.u8, ENCODE_STEPS)  # 8-bit sRGB of linear light (i / (ENCODE_STEPS - 1))
-        self.encode.from_numpy(np.rint(_encoded(np.linspace(0.0, 1.0, ENCODE_STEPS)) * 255.0).astype(np.uint8))
         self.tissue = ti.Vector.field(2, ti.f32, (height, width))   # tissue height (mm), roughness at surface texels
-        self.tissue.from_numpy(surfaces[0].astype(np.float32))
         self.relief = ti.field(ti.f32, (height, width))             # surface height with blood (mm), every texel
         self.blood_raw = ti.field(ti.f32, (height, width))          # blood depth at display texels (mm), as read
         self.blood_tmp = ti.field(ti.f32, (height, width))          # ... smoothed along rows
@@ -155,6 +149,10 @@ class Composer:
         self.count = count
         self.texel_mm = float(texel_mm)
         self.span = row_span(width)  # texels a thread of a light pass takes along a row
+        field_io.load([(self.textures, np.stack(textures)), (self.surfaces, np.stack(surfaces)),
+                       (self.ranges, np.array([[stage["from"], stage["to"], stage["opacity"]] for stage in stages])),
+                       (self.fill, fill_index), (self.color, textures[0]), (self.tissue, surfaces[0]),
+                       (self.encode, np.rint(_encoded(np.linspace(0.0, 1.0, ENCODE_STEPS)) * 255.0))])
         self._linearize()
 
     def compose(self, tiles, heat=None, film=None) -> np.ndarray:

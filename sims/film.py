@@ -19,7 +19,7 @@ import math
 import numpy as np
 import taichi as ti
 
-from sims import backend
+from sims import backend, field_io
 from sims.resample import GridReader
 
 SPLAT_SCALE = 1024  # fixed-point units of one particle in the splat grid (integer atomics: deterministic)
@@ -46,7 +46,7 @@ class ParticleSplat:
         self.busy = ti.field(ti.i32, tiles)   # 1: a particle is in this tile
         self.near = ti.field(ti.i32, tiles)   # 1: the filter reaches this tile from a busy one
         self.texel_area = ti.field(ti.f32, shape)
-        self.texel_area.from_numpy(np.where(surface.mask, surface.texel_area_mm2, 1.0).astype(np.float32))
+        field_io.load([(self.texel_area, np.where(surface.mask, surface.texel_area_mm2, 1.0))])
         mask = surface.mask
         self.median_texel_mm = tuple(float(np.median(np.linalg.norm(t[mask], axis=1))) if mask.any() else 1.0
                                      for t in (surface.tangent_u, surface.tangent_v))  # along columns, rows
@@ -135,12 +135,8 @@ class BloodFilm(GridReader):
 
     def reset(self) -> None:
         """Dry, and every tile touched (what was shown before goes)."""
-        self.trail.fill(0.0)
-        self.stain.fill(0.0)
-        if self.has_clot:
-            self.clot.fill(0.0)
-        self.near.fill(0)
-        self.touched.fill(1)
+        field_io.load([(self.trail, 0.0), (self.stain, 0.0), (self.near, 0), (self.touched, 1)]
+                      + ([(self.clot, 0.0)] if self.has_clot else []))
         self._settled = False
 
     def advance(self, dt_s: float, trail_s: float) -> None:

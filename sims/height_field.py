@@ -70,7 +70,7 @@ import math
 import numpy as np
 import taichi as ti
 
-from sims import backend
+from sims import backend, field_io
 from sims.cautery import NEIGHBOURS, direction_coefficients, edge_weights
 from sims.hashing import hash01
 from sims.models import MAX_SUCTION_TOOLS, active_suction
@@ -170,7 +170,6 @@ class HeightFieldBleeding:
         self.min_pipe_mm = float(max(pipe_lengths.min(), 1e-3)) if len(pipe_lengths) else 1.0
         # --- fields ---
         self.mask = ti.field(ti.i32, shape)
-        self.mask.from_numpy(mask.astype(np.int32))
         self.volume = ti.field(ti.i32, shape)           # units of unit_mm3
         self.inflow = ti.field(ti.i32, shape)           # units received since the clot was last diluted
         self.source = ti.field(ti.i32, shape)           # units spawned for the coming step, added over its substeps
@@ -197,18 +196,12 @@ class HeightFieldBleeding:
         self.link_width = ti.field(ti.f32, links)
         self.link_bed = ti.field(ti.f32, links)
         self.link_u = ti.field(ti.f32, (2, links))
-        self.link_start.from_numpy(link_start.astype(np.int32))
-        if count:
-            self.link_to.from_numpy(link_to.astype(np.int32))
-            self.link_rev.from_numpy(link_rev)
-            self.link_length.from_numpy(link_length.astype(np.float32))
-            self.link_width.from_numpy((link_weight.astype(np.float64) * link_length).astype(np.float32))
-        self.unit_per_area.from_numpy(np.where(mask, self.unit_mm3 / np.where(mask, area, 1.0), 0.0).astype(np.float32))
-        self.area.from_numpy(area.astype(np.float32))
-        self.position.from_numpy(surface.position_mm.astype(np.float32))
-        self.kind.from_numpy(kind)
-        self.length.from_numpy(length.astype(np.float32))
-        self.pipe_width.from_numpy(pipe_width.astype(np.float32))
+        field_io.load([(self.mask, mask), (self.link_start, link_start),
+                       (self.unit_per_area, np.where(mask, self.unit_mm3 / np.where(mask, area, 1.0), 0.0)),
+                       (self.area, area), (self.position, surface.position_mm), (self.kind, kind), (self.length, length),
+                       (self.pipe_width, pipe_width)]
+                      + ([(self.link_to, link_to), (self.link_rev, link_rev), (self.link_length, link_length),
+                          (self.link_width, (link_weight.astype(np.float64) * link_length).astype(np.float32))] if count else []))
         self.tiles = TileSchedule(mask, link_start, link_to, 1, TILE)
         self.counts = ti.field(ti.i32, (self.tiles.tiles, 3))
         self.sink_totals = ti.field(ti.i64, 3)           # units suctioned, left, dried since the reset (exact)
@@ -226,22 +219,20 @@ class HeightFieldBleeding:
         """World gravity (mm/s^2): the bed differences per pipe (float64, then float32), g_n and g_t per texel."""
         g = np.asarray(gravity_mm_s2, np.float64)
         self.gravity = g
-        self.bed.from_numpy((-(self._delta @ g)).astype(np.float32))
-        if len(self._link_delta):
-            self.link_bed.from_numpy((-(self._link_delta @ g)).astype(np.float32))
         normal = self.surface.normal.astype(np.float64)
         gn = -(normal @ g)
         tangential = g[None, None, :] - (normal @ g)[..., None] * normal
         mask = self.surface.mask
-        self.gn.from_numpy(np.where(mask, np.maximum(gn, 0.0), 0.0).astype(np.float32))
-        self.gt.from_numpy(np.where(mask, np.linalg.norm(tangential, axis=-1), 0.0).astype(np.float32))
+        field_io.load([(self.bed, (-(self._delta @ g)).astype(np.float32)),
+                       (self.gn, np.where(mask, np.maximum(gn, 0.0), 0.0).astype(np.float32)),
+                       (self.gt, np.where(mask, np.linalg.norm(tangential, axis=-1), 0.0).astype(np.float32))]
+                      + ([(self.link_bed, (-(self._link_delta @ g)).astype(np.float32))] if len(self._link_delta) else []))
 
     def reset(self) -> None:
         """No blood, no stain, counters at zero."""
-        for name in ("volume", "source", "inflow", "clot", "stain", "give", "u", "link_u", "counts", "sink_totals", "stats"):
-            getattr(self, name).fill(0)
-        self.tiles.hot.fill(-1)
-        self.tiles.depth.fill(0)
+        field_io.load([(getattr(self, name), 0) for name in ("volume", "source", "inflow", "clot", "stain", "give", "u",
+                                                             "link_u", "counts", "sink_totals", "stats")]
+                      + [(self.tiles.hot, -1), (self.tiles.depth, 0)])
         self.tiles.plan(0, 0, False)
         self.tiles.mark_all_changed()
         self.sources = {"spawned": 0, "dropped_too_deep": 0}  # units (Python ints: exact); the sinks: sink_totals

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import taichi as ti
 
-from sims import paths
+from sims import field_io, paths
 from sims.backend import cache_dir, read_cached_npz, save_cached_npz
 
 GRID_PADDING_MM = 3.0  # matches the largest contact distance (sims.params)
@@ -256,13 +256,8 @@ class InstrumentFields:
                 cell_counts[index] = grid.shape
                 corners = origin[index] + np.array(np.meshgrid(*[[0, n - 1] for n in grid.shape])).reshape(3, -1).T * spacing[index]
                 extent[index] = np.linalg.norm(corners, axis=1).max()
-        self.shape_code.from_numpy(codes)
-        self.dims.from_numpy(dims_arr)
-        self.sdf.from_numpy(sdf)
-        self.sdf_origin.from_numpy(origin)
-        self.sdf_spacing.from_numpy(spacing)
-        self.sdf_cells.from_numpy(cell_counts)
-        self.extent.from_numpy(extent)
+        field_io.load([(self.shape_code, codes), (self.dims, dims_arr), (self.sdf, sdf), (self.sdf_origin, origin),
+                       (self.sdf_spacing, spacing), (self.sdf_cells, cell_counts), (self.extent, extent)])
         self.poses = []
         self._uploaded = None  # the packed poses last uploaded (set_poses)
         self.set_time(0.0)

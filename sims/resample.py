@@ -13,6 +13,8 @@ import numpy as np
 import taichi as ti
 from scipy.spatial import cKDTree
 
+from sims import field_io
+
 TAPS = 4
 
 
@@ -77,8 +79,8 @@ class GridResampler:
         self.dominant = taps[np.arange(len(taps)), weights.argmax(axis=1)]  # (H * W,) the heaviest tap
         self.taps = ti.Vector.field(TAPS, ti.i32, self.fine_shape)
         self.weights = ti.Vector.field(TAPS, ti.f32, self.fine_shape)
-        self.taps.from_numpy(taps.reshape(self.fine_shape + (TAPS,)))
-        self.weights.from_numpy(weights.reshape(self.fine_shape + (TAPS,)))
+        field_io.load([(self.taps, taps.reshape(self.fine_shape + (TAPS,))),
+                       (self.weights, weights.reshape(self.fine_shape + (TAPS,)))])
 
     def coarse_texel(self, texel_rc) -> tuple[int, int]:
         """(row, col) on the coarse grid that weighs most in a fine texel."""

@@ -45,7 +45,7 @@ import numpy as np
 import taichi as ti
 from taichi.lang.util import to_numpy_type
 
-from sims import backend
+from sims import backend, field_io
 from sims.film import ParticleSplat
 from sims.hashing import hash01
 from sims.models import MAX_SUCTION_TOOLS, active_suction
@@ -125,13 +125,11 @@ class Bleeding:
         record[..., 2:5] = np.stack([metric[..., 0, 0], metric[..., 0, 1], metric[..., 1, 1]], axis=-1)
         record[..., 5] = surface.mask
         self.texel_record = ti.Vector.field(8, ti.f32, (height, width))
-        self.texel_record.from_numpy(record)
         self.texel_ex = ti.Vector.field(3, ti.f32, (height, width))       # dP/dx, mm per texel
         self.texel_ey = ti.Vector.field(3, ti.f32, (height, width))       # dP/dy, mm per texel
-        self.texel_ex.from_numpy(ex)
-        self.texel_ey.from_numpy(ey)
         self.texel_position = ti.Vector.field(3, ti.f32, (height, width))
-        self.texel_position.from_numpy(surface.position_mm)
+        field_io.load([(self.texel_record, record), (self.texel_ex, ex), (self.texel_ey, ey),
+                       (self.texel_position, surface.position_mm)])
         # extent of the metric's unit ellipse in grid units: the cell size per mm of radius
         det = np.where(surface.mask, metric[..., 0, 0] * metric[..., 1, 1] - metric[..., 0, 1] ** 2, np.nan)
         self._cell_per_mm = (
@@ -254,14 +252,8 @@ class Bleeding:
         self.reset()
         full = np.zeros((self.pool_size, 2), np.float32)
         full[:count] = grid_xy
-        for name in ("pos", "pos_prev"):
-            getattr(self, name).from_numpy(full)
-        self.vel.from_numpy(np.zeros((self.pool_size, 2), np.float32))
-        self.density.from_numpy(np.zeros((self.pool_size, 2), np.float32))
-        for name in ("age", "clot"):
-            getattr(self, name).from_numpy(np.zeros(self.pool_size, np.float32))
-        self.uid.from_numpy(np.arange(self.pool_size, dtype=np.int32))
-        self.fate.from_numpy(np.zeros(self.pool_size, np.int32))
+        field_io.load([(self.pos, full), (self.pos_prev, full), (self.vel, 0.0), (self.density, 0.0), (self.age, 0.0),
+                       (self.clot, 0.0), (self.uid, np.arange(self.pool_size, dtype=np.int32)), (self.fate, ALIVE)])
         self.counters[0] = count
         self.count = count
         self.alive_count[None] = count

@@ -17,7 +17,7 @@ look, which recomposes only those tiles (sims.display_tiles): only the damaged o
 import numpy as np
 import taichi as ti
 
-from sims import backend
+from sims import backend, field_io
 
 TILE = 8  # texels per tile side
 WAKE_HALO_TEXELS = 16  # awake texels at least this far around a hot tile: the tails of a spreading bump keep moving
@@ -77,7 +77,6 @@ class TileSchedule:
         occupied = np.array([mask[tr * tile:(tr + 1) * tile, tc * tile:(tc + 1) * tile].any()
                              for tr in range(self.rows) for tc in range(self.cols)], np.int32)
         self.occupied = ti.field(ti.i32, count)
-        self.occupied.from_numpy(occupied)
         self.surface_tiles = int(occupied.sum())  # tiles holding surface texels
         self.depth = ti.field(ti.i32, count)   # layers solved per tile this step, 0 asleep
         self.hot = ti.field(ti.i32, count)     # deepest layer off rest at the last scan, -1 none
@@ -91,13 +90,11 @@ class TileSchedule:
         start, partner = tile_links(link_start, link_to, mask.shape, tile)
         self.partner_start = ti.field(ti.i32, count + 1)
         self.partner = ti.field(ti.i32, max(len(partner), 1))
-        self.partner_start.from_numpy(start)
-        if len(partner):
-            self.partner.from_numpy(partner)
         self.awake = 0        # tiles awake this step (copies of count, read once per plan)
         self.fell_asleep = 0  # tiles in `asleep`
         self._flagged = True  # changed or damaged may hold a flag (a tile stepped or was set since take_changed)
-        self.hot.fill(-1)
+        field_io.load([(self.occupied, occupied), (self.partner_start, start), (self.hot, -1)]
+                      + ([(self.partner, partner)] if len(partner) else []))
 
     @ti.func
     def texel(self, i, j):

@@ -127,13 +127,18 @@ def _remember_source_positions() -> None:
     context.get_pos_info = get_pos_info
 
 
+def on_cpu() -> bool:
+    """Whether kernels run on the CPU (also before the runtime starts)."""
+    return _started_arch is None or _started_arch in CPU_ARCHS
+
+
 def serial(items: int) -> bool:
     """Whether a kernel's loops over `items` work items (texels, particles) should run on the launching thread instead
     of Taichi's CPU thread pool: each parallel loop wakes the pool's threads and waits for them, measured at 40-60 us
     per loop on a 2-core virtual machine (25 us on another), whatever the loop does, more than the whole work of a
     loop over a few thousand texels. Kernels take it as a template argument (`ti.loop_config(serialize=serial)` before
     each loop), so both versions give the same bytes. Never on a GPU."""
-    return (_started_arch is None or _started_arch in CPU_ARCHS) and items < SERIAL_BELOW_ITEMS
+    return on_cpu() and items < SERIAL_BELOW_ITEMS
 
 
 def row_span(width: int) -> int:

@@ -19,7 +19,8 @@ passes walk the three runs side by side without a branch (a pair out of range we
 multiples of LANES candidates, so that the whole walk runs in the compiler's vector loop (8 pairs per instruction
 on a CPU with AVX2), and the three runs are three independent chains in one loop (1.2 times faster than one loop
 per run). Every kernel gathers from neighbours and writes only its own particle; the sort's prefix sum and scatter
-run serially (a few per cent of the step on a CPU), so results are bitwise identical across runs and thread counts.
+run serially on a CPU (2-3 % of the step) and in parallel on a GPU, where each cell's slots are then put in index
+order, so results are bitwise identical across runs, thread counts and the two sorts.
 A substep's passes are one launch (_passes), and a small pool's whole step is one (its loops serial in one task): on a
 CPU a launch from Python costs 15-45 us, a third of a 1,000-particle step when each pass was its own. Kernels loop over
 the pool's count at the start of the step and skip past the device's alive_count: the step's last launch returns the
@@ -62,6 +63,7 @@ PARTICLE_LOOP_ITEMS = 0.8   # a particle weighs this many work items of backend.
                             # launching thread below about 10,000 particles, where waking the thread pool for each of a
                             # substep's loops costs more than the second thread gains (median of 200 steps, 2 threads:
                             # 2.98 ms serial against 3.43 parallel at 5,000; 5.63 both at 10,000; 8.5 against 5.5 at 15,000)
+PREFIX_BLOCK = 1024         # keys a thread of the parallel prefix sum adds up (_prefix_sum)
 SQRT_HALF = math.sqrt(0.5)
 COINCIDENT = 1e-6            # pairs closer than this many interaction radii are coincident (_relax)
 MAX_RELAX_FRACTION = 0.5    # largest relaxation displacement per substep, in interaction radii
@@ -102,14 +104,17 @@ class Bleeding:
     """Particle pool, neighbour grid and display splat on a TissueSurface (bleeding method `particles`).
 
     walls: keep particles inside the valid texels (their velocity into the wall removed) instead of
-    removing those that leave; off in the product.
+    removing those that leave; off in the product. parallel_sort: the counting sort's prefix sum and scatter in
+    parallel (_sort); None: on a GPU only.
     """
 
     method = "particles"
 
-    def __init__(self, surface, params: dict, gravity_mm_s2, capacity: int, walls: bool = False):
+    def __init__(self, surface, params: dict, gravity_mm_s2, capacity: int, walls: bool = False,
+                 parallel_sort: bool | None = None):
         self.surface, self.params = surface, params
         self.walls = bool(walls)
+        self.parallel_sort = not backend.on_cpu() if parallel_sort is None else bool(parallel_sort)
         self.separate_passes = False  # True: one launch per pass (the bench's per-pass profile), not one per substep
         height, width = surface.mask.shape
         self.height, self.width, self.capacity = height, width, int(capacity)
@@ -141,6 +146,7 @@ class Bleeding:
         keys = self.cells_x * self.cells_y + 3  # the cells, then one key per way of leaving (SUCTIONED ... EXPIRED)
         self.cell_count = ti.field(ti.i32, keys)
         self.cell_start = ti.field(ti.i32, keys + 1)
+        self.block_start = ti.field(ti.i32, keys // PREFIX_BLOCK + 2)  # the parallel prefix sum's block offsets
         capacity = self.pool_size = max(self.capacity, 1) + MAX_CANDIDATES + LANES  # the pair walks read past the pool
         soa = ti.Layout.SOA  # the pair loops read these at LANES consecutive candidates: one load per component
         self.pos = ti.Vector.field(2, ti.f32, capacity, layout=soa)
@@ -490,8 +496,11 @@ class Bleeding:
     @ti.func
     def _sort(self, serial: ti.template(), n, size_x, size_y):
         """Alive particles in cell order at the front of the pool (neighbours sit close in memory), the others counted
-        by fate and dropped: a stable counting sort (serial prefix sum and scatter, so deterministic), then a gather.
-        size_x, size_y: cell size in texels."""
+        by fate and dropped: a stable counting sort, then a gather. Its prefix sum and scatter run serially on a CPU;
+        with parallel_sort (a GPU, where a serial loop is one thread) the prefix sum runs by blocks (_prefix_sum) and
+        each particle takes any free slot of its key, then each cell's slots are put in index order: the same order,
+        so the same bytes. Kept serial on a CPU, where the parallel one is slower (the sort launched alone at 100,000
+        particles on 2 cores: 1.90 against 2.43 ms). size_x, size_y: cell size in texels."""
         cells = self.cells_x * self.cells_y
         ti.loop_config(serialize=serial)
         for i in range(n):
@@ -504,19 +513,30 @@ class Bleeding:
                     key = cy * self.cells_x + cx
                 ti.atomic_add(self.cell_count[key], 1)
                 self.cell[i] = key
-        ti.loop_config(serialize=True)
-        for c in range(cells + 4):
-            if c == 0:
-                self.cell_start[0] = 0
-            else:
-                self.cell_start[c] = self.cell_start[c - 1] + self.cell_count[c - 1]
-        ti.loop_config(serialize=True)
-        for t in range(n):  # the last particle first, into its key's last free slot: stable, and the counts end at 0
-            i = n - 1 - t
-            if i < self.alive_count[None]:
-                key = self.cell[i]
-                self.cell_count[key] -= 1
-                self.sorted[self.cell_start[key] + self.cell_count[key]] = i
+        in_parallel = ti.static(self.parallel_sort and not serial)
+        self._prefix_sum(in_parallel, cells + 3)
+        if ti.static(not in_parallel):
+            ti.loop_config(serialize=True)
+            for t in range(n):  # the last particle first, into its key's last free slot: stable, and the counts end at 0
+                i = n - 1 - t
+                if i < self.alive_count[None]:
+                    key = self.cell[i]
+                    self.cell_count[key] -= 1
+                    self.sorted[self.cell_start[key] + self.cell_count[key]] = i
+        else:  # in parallel: any free slot of its key (the counts end at 0), then each cell's slots put in index order
+            for i in range(n):
+                if i < self.alive_count[None]:
+                    key = self.cell[i]
+                    self.sorted[self.cell_start[key] + ti.atomic_sub(self.cell_count[key], 1) - 1] = i
+            for c in range(cells):  # the departed (keys past the cells) are dropped: their order does not matter
+                lo, hi = self.cell_start[c], self.cell_start[c + 1]
+                for s in range(lo + 1, hi):  # insertion sort: a cell holds a few particles
+                    value = self.sorted[s]
+                    t = s
+                    while t > lo and self.sorted[t - 1] > value:
+                        self.sorted[t] = self.sorted[t - 1]
+                        t -= 1
+                    self.sorted[t] = value
         for fate in ti.static(range(SUCTIONED, EXPIRED + 1)):  # unrolled: one serial task with the count below
             self.counters[fate] += self.cell_start[cells + fate] - self.cell_start[cells + fate - 1]
         self.alive_count[None] = self.cell_start[cells]
@@ -545,6 +565,37 @@ class Bleeding:
                 self.age[s], self.clot[s], self.drag[s] = back_f[0], back_f[1], back_f[2]
                 self.uid[s], self.cell[s] = back_i[0], back_i[1]
                 self.fate[s] = ALIVE
+
+    @ti.func
+    def _prefix_sum(self, in_parallel: ti.template(), keys):
+        """cell_start[k] = sum of cell_count[:k] for k <= keys. Integer sums: the same in any order. Parallel: blocks of
+        PREFIX_BLOCK keys summed at once, their offsets added up in order, then each block's starts."""
+        if ti.static(not in_parallel):
+            ti.loop_config(serialize=True)
+            for c in range(keys + 1):
+                if c == 0:
+                    self.cell_start[0] = 0
+                else:
+                    self.cell_start[c] = self.cell_start[c - 1] + self.cell_count[c - 1]
+        else:
+            blocks = (keys + PREFIX_BLOCK - 1) // PREFIX_BLOCK
+            for b in range(blocks):
+                total = 0
+                for k in range(b * PREFIX_BLOCK, ti.min((b + 1) * PREFIX_BLOCK, keys)):
+                    total += self.cell_count[k]
+                self.block_start[b + 1] = total
+            ti.loop_config(serialize=True)
+            for b in range(blocks + 1):
+                if b == 0:
+                    self.block_start[0] = 0
+                else:
+                    self.block_start[b] += self.block_start[b - 1]
+            for b in range(blocks):
+                start = self.block_start[b]
+                for k in range(b * PREFIX_BLOCK, ti.min((b + 1) * PREFIX_BLOCK, keys)):
+                    self.cell_start[k] = start
+                    start += self.cell_count[k]
+            self.cell_start[keys] = self.block_start[blocks]
 
     @ti.func
     def _candidates(self, i):

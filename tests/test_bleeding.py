@@ -313,6 +313,33 @@ def test_same_scene_twice_gives_identical_state():
         assert np.array_equal(states[0][key], states[1][key]), key
 
 
+def test_the_gpu_sort_orders_the_pool_as_the_serial_sort(monkeypatch):
+    """The counting sort a GPU runs (prefix sum by blocks of keys, each particle into any free slot of its key, then
+    each cell's slots in index order) puts the pool in the serial sort's order: the same bytes after 10 steps of
+    30,000 particles flowing down the bench's disk (21,000 cells: 21 blocks of keys), every loop parallel."""
+    from lab.bench.bleeding import _defaults, build_plane
+    from lab.sph_reference import disk_positions
+    from sims import backend
+
+    monkeypatch.setattr(backend, "SERIAL_BELOW_ITEMS", 0)
+    values = _defaults()
+    positions = disk_positions(30_000, values["particle_spacing_mm"])
+    side = 2.4 * float(np.abs(positions).max())
+    grid = (positions / side + 0.5) * 1024
+    grid[:, 1] = 1024 - grid[:, 1]
+    states = []
+    for parallel_sort in (False, True):
+        bleeding = Bleeding(build_plane(side, 1024), values, (0.0, -3000.0, 0.0), 30_000, parallel_sort=parallel_sort)
+        bleeding.place(grid)
+        for _ in range(10):
+            bleeding.step(0.01)
+        assert bleeding.cells_x * bleeding.cells_y > 20 * 1024 and 0 < bleeding.count
+        assert_accounting(bleeding)
+        states.append({name: getattr(bleeding, name).to_numpy()[:bleeding.count] for name in ("sorted", "pos", "vel", "uid")})
+    for name in states[0]:
+        assert np.array_equal(states[0][name], states[1][name]), name
+
+
 @pytest.mark.parametrize("method, scene, duration", [("particles", "bleeding.yaml", "0.5"), ("height_field", "bleeding.yaml", "0.5"),
                                                      ("height_field", "hemostasis.yaml", "2.6")])  # the last: with suction
 def test_identical_state_with_one_and_two_threads_and_with_small_loops_serial(tmp_path, method, scene, duration):

@@ -46,7 +46,7 @@ import numpy as np
 import taichi as ti
 from taichi.lang.util import to_numpy_type
 
-from sims import backend, field_io
+from sims import backend, field_io, scan
 from sims.film import ParticleSplat
 from sims.hashing import hash01
 from sims.models import MAX_SUCTION_TOOLS, active_suction
@@ -584,12 +584,7 @@ class Bleeding:
                 for k in range(b * PREFIX_BLOCK, ti.min((b + 1) * PREFIX_BLOCK, keys)):
                     total += self.cell_count[k]
                 self.block_start[b + 1] = total
-            ti.loop_config(serialize=True)
-            for b in range(blocks + 1):
-                if b == 0:
-                    self.block_start[0] = 0
-                else:
-                    self.block_start[b] += self.block_start[b - 1]
+            scan.add_up_blocks(self.block_start, blocks)
             for b in range(blocks):
                 start = self.block_start[b]
                 for k in range(b * PREFIX_BLOCK, ti.min((b + 1) * PREFIX_BLOCK, keys)):

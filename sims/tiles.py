@@ -7,7 +7,8 @@ the depth a tile needs for its own reasons (a tool within reach). plan() then wa
 next to a hot tile (within `reach_tiles`: heat moves at most one texel per explicit substep) or joined to a hot tile
 by a UV seam link, each with a depth of the deepest hot layer around it plus `margin` layers (so heat moving down
 always finds a solved layer to go into), and lists them in tile order (the same list, so the same sums, whatever
-the thread count). A tile that goes to sleep keeps its values, which are at rest within the model's tolerance; the
+the thread count; on a GPU the lists are built by blocks of LIST_BLOCK tiles, sims.scan, in the same order). A tile
+that goes to sleep keeps its values, which are at rest within the model's tolerance; the
 tiles that fell asleep at this plan are listed in `asleep` (a model with two buffers copies them across once).
 The tiles stepped since a reader last asked are flagged in `changed`; a model flags in `damaged` the tiles where it
 also changed a lasting field (the burn's damage and char). take_changed() hands either set to its one reader, the
@@ -17,9 +18,10 @@ look, which recomposes only those tiles (sims.display_tiles): only the damaged o
 import numpy as np
 import taichi as ti
 
-from sims import backend, field_io
+from sims import backend, field_io, scan
 
 TILE = 8  # texels per tile side
+LIST_BLOCK = 64  # tiles a thread lists in plan when the lists are built by blocks (a GPU)
 WAKE_HALO_TEXELS = 16  # awake texels at least this far around a hot tile: the tails of a spreading bump keep moving
 
 
@@ -85,6 +87,8 @@ class TileSchedule:
         self.active = ti.field(ti.i32, count)  # awake tiles, in tile order
         self.asleep = ti.field(ti.i32, count)  # tiles that were awake in the last step and are not now
         self.count = ti.field(ti.i32, (2,))    # awake, fell asleep
+        self.parallel_lists = not backend.on_cpu()  # plan's lists built by blocks (sims.scan), not on one thread
+        self.list_start = ti.Vector.field(2, ti.i32, count // LIST_BLOCK + 2)  # each block's place in active, asleep
         self.changed = ti.field(ti.i32, count)  # 1: stepped (or reset) since take_changed()
         self.damaged = ti.field(ti.i32, count)  # 1: a lasting field changed (set by the model) since take_changed()
         start, partner = tile_links(link_start, link_to, mask.shape, tile)
@@ -138,22 +142,50 @@ class TileSchedule:
             if wake_all:
                 depth = self.max_depth
             self.planned[t] = ti.min(depth, self.max_depth) * self.occupied[t]
-        ti.loop_config(serialize=True)
-        for t in range(self.tiles):
-            if t == 0:
-                self.count[0] = 0
-                self.count[1] = 0
-            if self.planned[t] > 0:
-                self.active[self.count[0]] = t
-                self.count[0] += 1
-                self.changed[t] = 1
-            elif self.depth[t] > 0:
-                self.asleep[self.count[1]] = t
-                self.count[1] += 1
-            self.depth[t] = self.planned[t]
-            self.hot[t] = -1
-            self.wanted[t] = 0
+        if ti.static(self.parallel_lists):
+            blocks = (self.tiles + LIST_BLOCK - 1) // LIST_BLOCK
+            for b in range(blocks):
+                found = ti.Vector([0, 0])
+                for t in range(b * LIST_BLOCK, ti.min((b + 1) * LIST_BLOCK, self.tiles)):
+                    found += self._listed(t)
+                self.list_start[b + 1] = found
+            scan.add_up_blocks(self.list_start, blocks)
+            for b in range(blocks):
+                at = self.list_start[b]
+                for t in range(b * LIST_BLOCK, ti.min((b + 1) * LIST_BLOCK, self.tiles)):
+                    at += self._list(t, at)
+            self.count[0], self.count[1] = self.list_start[blocks][0], self.list_start[blocks][1]
+        else:
+            ti.loop_config(serialize=True)
+            for t in range(self.tiles):
+                if t == 0:
+                    self.count[0] = 0
+                    self.count[1] = 0
+                listed = self._list(t, ti.Vector([self.count[0], self.count[1]]))
+                self.count[0] += listed[0]
+                self.count[1] += listed[1]
         return ti.Vector([self.count[0], self.count[1]])
+
+    @ti.func
+    def _listed(self, t):
+        """(1 if tile t is awake in this plan, 1 if it fell asleep at it) as an i32 vector."""
+        awake = self.planned[t] > 0
+        return ti.Vector([ti.cast(awake, ti.i32), ti.cast((not awake) and self.depth[t] > 0, ti.i32)])
+
+    @ti.func
+    def _list(self, t, at):
+        """Tile t into `active` at at[0] if awake, into `asleep` at at[1] if it fell asleep; its depth becomes the
+        planned one and its scan values are cleared. Returns _listed(t), read before the depth changes."""
+        listed = self._listed(t)
+        if listed[0]:
+            self.active[at[0]] = t
+            self.changed[t] = 1
+        elif listed[1]:
+            self.asleep[at[1]] = t
+        self.depth[t] = self.planned[t]
+        self.hot[t] = -1
+        self.wanted[t] = 0
+        return listed
 
     def mark_all_changed(self) -> None:
         """Every tile's values were set from outside (a reset, a new state)."""

@@ -530,7 +530,7 @@ class Bleeding:
                     self.sorted[self.cell_start[key] + ti.atomic_sub(self.cell_count[key], 1) - 1] = i
             for c in range(cells):  # the departed (keys past the cells) are dropped: their order does not matter
                 lo, hi = self.cell_start[c], self.cell_start[c + 1]
-                for s in range(lo + 1, hi):  # insertion sort: a cell holds a few particles
+                for s in range(lo + 1, hi):  # insertion sort: a cell holds a few particles (a dense clump: its square)
                     value = self.sorted[s]
                     t = s
                     while t > lo and self.sorted[t - 1] > value:

@@ -20,7 +20,7 @@ def state_after(scene_file: str, changes: list, steps: int, gpu_paths: bool) -> 
     models = [model for model in (scene.cautery, scene.bleeding) if model is not None]
     if scene.cautery is not None:  # more than one block of tiles (sims.tiles.LIST_BLOCK)
         assert scene.cautery.tiles.tiles > 4 * LIST_BLOCK
-    assert [getattr(model, "tiles", model).parallel_lists if hasattr(model, "tiles") else model.parallel_sort
+    assert [model.tiles.parallel_lists if hasattr(model, "tiles") else model.parallel_sort
             for model in models] == [gpu_paths] * len(models)
     return scene.state_arrays()
 

@@ -63,6 +63,7 @@ PARTICLE_LOOP_ITEMS = 0.8   # a particle weighs this many work items of backend.
                             # launching thread below about 10,000 particles, where waking the thread pool for each of a
                             # substep's loops costs more than the second thread gains (median of 200 steps, 2 threads:
                             # 2.98 ms serial against 3.43 parallel at 5,000; 5.63 both at 10,000; 8.5 against 5.5 at 15,000)
+SORT_RUN = 32              # the GPU sort ranks a cell's slots by counting in runs of this many, merges this many runs
 PREFIX_BLOCK = 1024         # keys a thread of the parallel prefix sum adds up (_prefix_sum)
 SQRT_HALF = math.sqrt(0.5)
 COINCIDENT = 1e-6            # pairs closer than this many interaction radii are coincident (_relax)
@@ -148,6 +149,9 @@ class Bleeding:
         self.cell_start = ti.field(ti.i32, keys + 1)
         self.block_start = ti.field(ti.i32, keys // PREFIX_BLOCK + 2)  # the parallel prefix sum's block offsets
         capacity = self.pool_size = max(self.capacity, 1) + MAX_CANDIDATES + LANES  # the pair walks read past the pool
+        self._merge_levels = 0  # _order_cells: runs of SORT_RUN^k merged for k = 1 .. this, up to the whole pool
+        while SORT_RUN ** (self._merge_levels + 1) < capacity:
+            self._merge_levels += 1
         soa = ti.Layout.SOA  # the pair loops read these at LANES consecutive candidates: one load per component
         self.pos = ti.Vector.field(2, ti.f32, capacity, layout=soa)
         self.pos_prev = ti.Vector.field(2, ti.f32, capacity)
@@ -169,6 +173,7 @@ class Bleeding:
         self.cell = ti.field(ti.i32, capacity)                 # sort key: the cell, or past the cells when gone
         self.texel_moved = ti.field(ti.i32, capacity)          # 1: entered another texel, its record to be read
         self.sorted = ti.field(ti.i32, capacity)
+        self.sort_scratch = ti.field(ti.i32, capacity) if self.parallel_sort else None  # _order_cells
         self.counters = ti.field(ti.i32, 8)
         self.alive_count = ti.field(ti.i32, ())                # particles in use: the first alive_count of the pool
         self.step_values = ti.field(ti.f32, len(STEP_VALUES))  # STEP_VALUES, written when they change (a kernel
@@ -527,16 +532,8 @@ class Bleeding:
             for i in range(n):
                 if i < self.alive_count[None]:
                     key = self.cell[i]
-                    self.sorted[self.cell_start[key] + ti.atomic_sub(self.cell_count[key], 1) - 1] = i
-            for c in range(cells):  # the departed (keys past the cells) are dropped: their order does not matter
-                lo, hi = self.cell_start[c], self.cell_start[c + 1]
-                for s in range(lo + 1, hi):  # insertion sort: a cell holds a few particles (a dense clump: its square)
-                    value = self.sorted[s]
-                    t = s
-                    while t > lo and self.sorted[t - 1] > value:
-                        self.sorted[t] = self.sorted[t - 1]
-                        t -= 1
-                    self.sorted[t] = value
+                    self.sort_scratch[self.cell_start[key] + ti.atomic_sub(self.cell_count[key], 1) - 1] = i
+            self._order_cells(n, cells)
         for fate in ti.static(range(SUCTIONED, EXPIRED + 1)):  # unrolled: one serial task with the count below
             self.counters[fate] += self.cell_start[cells + fate] - self.cell_start[cells + fate - 1]
         self.alive_count[None] = self.cell_start[cells]
@@ -565,6 +562,64 @@ class Bleeding:
                 self.age[s], self.clot[s], self.drag[s] = back_f[0], back_f[1], back_f[2]
                 self.uid[s], self.cell[s] = back_i[0], back_i[1]
                 self.fate[s] = ALIVE
+
+    @ti.func
+    def _order_cells(self, n, cells):
+        """The GPU sort's last part: the alive particles, in sort_scratch in any order within each cell, into `sorted`
+        in index order within each cell, bounded for a dense clump. Each slot is ranked by counting within its run of
+        SORT_RUN slots; then, in cells larger than a run, runs of SORT_RUN^k are merged SORT_RUN at a time (level k),
+        each slot finding its place by a binary search in each other run of its group. Per slot and level at most
+        SORT_RUN searches, not a cell's square on one thread; the levels alternate buffers, a cell finished in the
+        scratch copied back by the next level."""
+        scratch = ti.static(self.sort_scratch)
+        for s in range(n):
+            if s < self.cell_start[cells]:
+                value = scratch[s]
+                lo, hi = self._slots_of_cell(value)
+                run = lo + (s - lo) // SORT_RUN * SORT_RUN
+                rank = 0
+                for t in range(run, ti.min(run + SORT_RUN, hi)):
+                    rank += ti.cast(scratch[t] < value, ti.i32)
+                self.sorted[run + rank] = value
+        for level in ti.static(range(1, self._merge_levels + 1)):
+            width = ti.static(SORT_RUN ** level)  # runs of width, each in order, merged into runs of SORT_RUN width
+            source, target = ti.static((self.sorted, scratch) if level % 2 else (scratch, self.sorted))
+            for s in range(n):
+                if s < self.cell_start[cells]:
+                    value = source[s]
+                    lo, hi = self._slots_of_cell(value)
+                    if hi - lo > width:
+                        group = lo + (s - lo) // (SORT_RUN * width) * (SORT_RUN * width)
+                        own = lo + (s - lo) // width * width
+                        rank = s - own
+                        for j in range(SORT_RUN):
+                            run = group + j * width
+                            if run != own and run < hi:
+                                a, b = run, ti.min(run + width, hi)
+                                while a < b:  # a: the first of the run not below value
+                                    middle = (a + b) // 2
+                                    if source[middle] < value:
+                                        a = middle + 1
+                                    else:
+                                        b = middle
+                                rank += a - run
+                        target[group + rank] = value
+                    elif ti.static(level % 2 == 0):
+                        if hi - lo > width // SORT_RUN:  # finished by the level before, in the scratch
+                            target[s] = value
+        if ti.static(self._merge_levels % 2 == 1):  # the last level wrote the scratch
+            for s in range(n):
+                if s < self.cell_start[cells]:
+                    value = scratch[s]
+                    lo, hi = self._slots_of_cell(value)
+                    if hi - lo > SORT_RUN ** self._merge_levels:
+                        self.sorted[s] = value
+
+    @ti.func
+    def _slots_of_cell(self, i):
+        """The sorted pool's slots lo <= s < hi of particle i's key."""
+        key = self.cell[i]
+        return self.cell_start[key], self.cell_start[key + 1]
 
     @ti.func
     def _prefix_sum(self, in_parallel: ti.template(), keys):

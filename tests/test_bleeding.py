@@ -340,6 +340,25 @@ def test_the_gpu_sort_orders_the_pool_as_the_serial_sort(monkeypatch):
         assert np.array_equal(states[0][name], states[1][name]), name
 
 
+def test_the_gpu_sort_orders_a_dense_clump_as_the_serial_sort(patch_256, monkeypatch):
+    """A clump of 20,000 particles on one point, one cell: the GPU sort's runs of 32 ranked, then merged 32 at a time
+    (runs of 1,024, then the cell) give the serial sort's order, every loop parallel, as the clump bursts."""
+    from sims import backend
+
+    monkeypatch.setattr(backend, "SERIAL_BELOW_ITEMS", 0)
+    states = []
+    for parallel_sort in (False, True):
+        bleeding = Bleeding(patch_256, dict(DEFAULTS), GRAVITY, 20_000, parallel_sort=parallel_sort)
+        assert bleeding.spawn((128, 128), 20_000, 0.0) == 20_000
+        bleeding.step(0.01)
+        largest = np.diff(bleeding.cell_start.to_numpy()[:bleeding.cells_x * bleeding.cells_y + 1]).max()
+        assert largest > 32 * 32, largest  # still a clump at the step's last sort: both levels of merging ran
+        run_steps(bleeding, 2, 0.01)
+        states.append({name: getattr(bleeding, name).to_numpy()[:bleeding.count] for name in ("sorted", "pos", "vel", "uid")})
+    for name in states[0]:
+        assert np.array_equal(states[0][name], states[1][name]), name
+
+
 @pytest.mark.parametrize("method, scene, duration", [("particles", "bleeding.yaml", "0.5"), ("height_field", "bleeding.yaml", "0.5"),
                                                      ("height_field", "hemostasis.yaml", "2.6")])  # the last: with suction
 def test_identical_state_with_one_and_two_threads_and_with_small_loops_serial(tmp_path, method, scene, duration):

@@ -213,8 +213,19 @@ class HeightFieldBleeding:
         self._min_side_mm = float(max(texel_sides.min(), 1e-6)) if len(texel_sides) else 1.0
         self.set_gravity(gravity_mm_s2)
         self.reset()
+        if not self.tiles.serial_for(self.tiles.surface_tiles):
+            self._compile_thread_pool_kernels()
 
     # --- set-up -------------------------------------------------------------------------------
+    def _compile_thread_pool_kernels(self) -> None:
+        """Compile the step's kernels with their loops on the thread pool now (backend.serial), launched over no tile:
+        on a grid whose wetted area can outgrow the launching thread's share they were compiled on the step that
+        crossed it, a stall of 0.8 s mid-bleed at 1024² (Taichi's front end 0.58 s of it, the kernel cache warm)."""
+        nu = kinematic_viscosity_mm2_s(self.params)
+        self._substep(False, 0, 0.01, nu, 0.0, 0.0, 1.0, 0, 0, 1)
+        self._suction_sum(False, 0, 0, np.zeros((MAX_SUCTION_TOOLS, 5), np.float32))
+        self._sinks(False, 0, 0, 0.0, 0, 0.01, nu)
+
     def set_gravity(self, gravity_mm_s2) -> None:
         """World gravity (mm/s^2): the bed differences per pipe (float64, then float32), g_n and g_t per texel."""
         g = np.asarray(gravity_mm_s2, np.float64)

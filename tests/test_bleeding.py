@@ -289,6 +289,24 @@ def test_a_parameter_changed_between_steps_acts_at_the_next_step(patch_256):
     assert counts["alive"] == 0 and counts["expired"] > 0, counts
 
 
+def test_the_step_whose_pool_outgrows_the_launching_thread_compiles_nothing(patch_256):
+    """A pool that can outgrow the launching thread's share (sims.backend.serial) has the thread pool's kernels
+    compiled with it: the step on which the pool crosses the share compiles no kernel (compiled on that step, they
+    stalled the lab 1.9 s), and the step runs on."""
+    from sims import backend
+    from sims.sph import PARTICLE_LOOP_ITEMS
+
+    bleeding = Bleeding(patch_256, dict(DEFAULTS), (0.0, 0.0, 0.0), 12_000)
+    bleeding.spawn((128, 128), 200, 2.0)
+    bleeding.step(0.01)  # a small pool: the launching thread's kernel
+    compiled = len(Bleeding._passes._primal.compiled_kernels)
+    bleeding.spawn((128, 128), 11_000, 4.0)
+    assert not backend.serial(PARTICLE_LOOP_ITEMS * bleeding.count), bleeding.count
+    bleeding.step(0.01)
+    assert len(Bleeding._passes._primal.compiled_kernels) == compiled
+    assert_bounded(bleeding, DEFAULTS["max_speed_mm_s"])
+
+
 def test_a_pool_of_a_million_particles_takes_under_300_mb(patch_256):
     """The fields sized by the pool grow linearly: bytes per particle x 1M (issue 13)."""
     per_particle = bleeding_on(patch_256, capacity=1000).memory_bytes()["particles"] / 1000

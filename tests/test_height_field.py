@@ -313,3 +313,23 @@ def test_a_dry_surface_costs_nothing_and_wakes_on_blood(bowls):
     blood.step(0.01)  # a halo of ceil(substeps / TILE) tiles: at 0.05 s steps the whole 64^2 bowl wakes
     assert 0 < blood.tiles.awake < blood.tiles.surface_tiles
     assert_exact(blood)
+
+
+def test_the_step_whose_blood_outgrows_the_launching_thread_compiles_nothing():
+    """On a grid with more tiles than the launching thread's share (sims.backend.serial: 512 tiles of 4 x 4 texels),
+    the thread pool's kernels are compiled with the model: the step on which the wetted tiles cross the share, with a
+    suction tool on, compiles no kernel (compiled on that step, they stalled a 1024² lab 0.8 s mid-bleed)."""
+    surface = build_surface(plane_mesh(30.0, 30.0), 128)
+    blood = HeightFieldBleeding(surface, dict(DEFAULTS), GRAVITY)
+    centre = (64, 64)
+    tool = (surface.position_mm[centre].astype(np.float64), 3.0, 0.01)
+    blood.spawn_rate("vessel", centre, 0.05, 0.01, 1.0)
+    blood.step(0.01, [tool])  # a few tiles wet: the launching thread's kernels
+    assert blood.tiles.serial_for(blood.tiles.awake)
+    kernels = [HeightFieldBleeding._substep._primal, HeightFieldBleeding._suction_sum._primal, HeightFieldBleeding._sinks._primal]
+    compiled = [len(kernel.compiled_kernels) for kernel in kernels]
+    blood.set_depth(np.where(surface.mask, 0.3, 0.0))  # every tile wet
+    blood.step(0.01, [tool])
+    assert not blood.tiles.serial_for(blood.tiles.awake), blood.tiles.awake
+    assert [len(kernel.compiled_kernels) for kernel in kernels] == compiled
+    assert_exact(blood)

@@ -358,19 +358,22 @@ def test_the_gpu_sort_orders_the_pool_as_the_serial_sort(monkeypatch):
         assert np.array_equal(states[0][name], states[1][name]), name
 
 
-def test_the_gpu_sort_orders_a_dense_clump_as_the_serial_sort(patch_256, monkeypatch):
-    """A clump of 20,000 particles on one point, one cell: the GPU sort's runs of 32 ranked, then merged 32 at a time
-    (runs of 1,024, then the cell) give the serial sort's order, every loop parallel, as the clump bursts."""
+@pytest.mark.parametrize("count, levels", [(700, 1), (20_000, 2)])
+def test_the_gpu_sort_orders_a_dense_clump_as_the_serial_sort(patch_256, monkeypatch, count, levels):
+    """A clump on one point, one cell: the GPU sort's runs of 32 ranked, then merged 32 at a time (one level, its
+    result copied back from the scratch, for a pool under 1,024; two, runs of 1,024 then the cell, above) give the
+    serial sort's order, every loop parallel, as the clump bursts."""
     from sims import backend
 
     monkeypatch.setattr(backend, "SERIAL_BELOW_ITEMS", 0)
     states = []
     for parallel_sort in (False, True):
-        bleeding = Bleeding(patch_256, dict(DEFAULTS), GRAVITY, 20_000, parallel_sort=parallel_sort)
-        assert bleeding.spawn((128, 128), 20_000, 0.0) == 20_000
+        bleeding = Bleeding(patch_256, dict(DEFAULTS), GRAVITY, count, parallel_sort=parallel_sort)
+        assert bleeding._merge_levels == levels
+        assert bleeding.spawn((128, 128), count, 0.0) == count
         bleeding.step(0.01)
         largest = np.diff(bleeding.cell_start.to_numpy()[:bleeding.cells_x * bleeding.cells_y + 1]).max()
-        assert largest > 32 * 32, largest  # still a clump at the step's last sort: both levels of merging ran
+        assert largest > 32 ** levels, largest  # still a clump at the step's last sort: every level merged
         run_steps(bleeding, 2, 0.01)
         states.append({name: getattr(bleeding, name).to_numpy()[:bleeding.count] for name in ("sorted", "pos", "vel", "uid")})
     for name in states[0]:

@@ -167,6 +167,6 @@ def plot(results: dict, out_dir) -> list[str]:
         ax.axvline(50.0, color="k", ls=":", lw=1, label="5 % of a core")
         ax.set_title(f"{size}²")
         ax.set_xlabel("wall ms per simulated s")
-    np.atleast_1d(axes)[0].legend(fontsize=7)
+    np.atleast_1d(axes)[-1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0))  # outside: no bar hidden
     fig.suptitle("Cost against activity")
     return [save(fig, out_dir, "activity.png")]

@@ -201,7 +201,7 @@ class HeightFieldBleeding:
                        (self.area, area), (self.position, surface.position_mm), (self.kind, kind), (self.length, length),
                        (self.pipe_width, pipe_width)]
                       + ([(self.link_to, link_to), (self.link_rev, link_rev), (self.link_length, link_length),
-                          (self.link_width, (link_weight.astype(np.float64) * link_length).astype(np.float32))] if count else []))
+                          (self.link_width, link_weight.astype(np.float64) * link_length)] if count else []))
         self.tiles = TileSchedule(mask, link_start, link_to, 1, TILE)
         self.counts = ti.field(ti.i32, (self.tiles.tiles, 3))
         self.sink_totals = ti.field(ti.i64, 3)           # units suctioned, left, dried since the reset (exact)
@@ -234,10 +234,10 @@ class HeightFieldBleeding:
         gn = -(normal @ g)
         tangential = g[None, None, :] - (normal @ g)[..., None] * normal
         mask = self.surface.mask
-        field_io.load([(self.bed, (-(self._delta @ g)).astype(np.float32)),
-                       (self.gn, np.where(mask, np.maximum(gn, 0.0), 0.0).astype(np.float32)),
-                       (self.gt, np.where(mask, np.linalg.norm(tangential, axis=-1), 0.0).astype(np.float32))]
-                      + ([(self.link_bed, (-(self._link_delta @ g)).astype(np.float32))] if len(self._link_delta) else []))
+        field_io.load([(self.bed, -(self._delta @ g)),
+                       (self.gn, np.where(mask, np.maximum(gn, 0.0), 0.0)),
+                       (self.gt, np.where(mask, np.linalg.norm(tangential, axis=-1), 0.0))]
+                      + ([(self.link_bed, -(self._link_delta @ g))] if len(self._link_delta) else []))
 
     def reset(self) -> None:
         """No blood, no stain, counters at zero."""

@@ -24,6 +24,11 @@ def bleeding_on(surface, capacity=20_000, **changes):
     return Bleeding(surface, {**DEFAULTS, **changes}, GRAVITY, capacity)
 
 
+def sorted_pool(bleeding) -> dict:
+    """The alive particles' sort order, positions, velocities and ids, to compare two pools bytewise."""
+    return {name: getattr(bleeding, name).to_numpy()[:bleeding.count] for name in ("sorted", "pos", "vel", "uid")}
+
+
 def assert_accounting(bleeding):
     counts = bleeding.accounting()
     assert counts["spawned"] == counts["alive"] + counts["suctioned"] + counts["left_surface"] + counts["expired"], counts
@@ -353,7 +358,7 @@ def test_the_gpu_sort_orders_the_pool_as_the_serial_sort(monkeypatch):
             bleeding.step(0.01)
         assert bleeding.cells_x * bleeding.cells_y > 20 * 1024 and 0 < bleeding.count
         assert_accounting(bleeding)
-        states.append({name: getattr(bleeding, name).to_numpy()[:bleeding.count] for name in ("sorted", "pos", "vel", "uid")})
+        states.append(sorted_pool(bleeding))
     for name in states[0]:
         assert np.array_equal(states[0][name], states[1][name]), name
 
@@ -375,7 +380,7 @@ def test_the_gpu_sort_orders_a_dense_clump_as_the_serial_sort(patch_256, monkeyp
         largest = np.diff(bleeding.cell_start.to_numpy()[:bleeding.cells_x * bleeding.cells_y + 1]).max()
         assert largest > 32 ** levels, largest  # still a clump at the step's last sort: every level merged
         run_steps(bleeding, 2, 0.01)
-        states.append({name: getattr(bleeding, name).to_numpy()[:bleeding.count] for name in ("sorted", "pos", "vel", "uid")})
+        states.append(sorted_pool(bleeding))
     for name in states[0]:
         assert np.array_equal(states[0][name], states[1][name]), name
 

@@ -1,4 +1,5 @@
 """The benchmark command: analytic references on known values, and a quick run with finite numbers."""
+import importlib.util
 import json
 import math
 
@@ -95,6 +96,9 @@ def test_quick_bench_writes_finite_numbers_and_plots_for_every_section(tmp_path)
     assert scenes["default.yaml"]["ms_per_simulated_s"]["bleeding"] == 0.0
     assert scenes["hemostasis.yaml"]["ms_per_simulated_s"]["cautery"] > 0.0 and scenes["hemostasis.yaml"]["ms_per_simulated_s"]["bleeding"] > 0.0
     assert finite_numbers(results)
+    if importlib.util.find_spec("pysplishsplash") is not None:  # CI installs the peer extra: its dam break runs beside ours
+        peer = results["dambreak"]["peer"]
+        assert peer["available"] and peer["runs"], peer.get("reason")
     activity = {row["case"]: row for row in results["activity"]["rows"]}
     assert set(activity) == {"idle", "one tool", "two tools", "one bleed point", "four bleed points"}
     assert activity["idle"]["hot_tiles_awake"] == 0 and activity["two tools"]["hot_tiles_awake"] > 0

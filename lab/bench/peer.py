@@ -89,6 +89,7 @@ def available() -> bool:
 def run(quick: bool) -> dict:
     """Dam break in SPlisHSPlasH at each resolution; {"available": False, "reason": ...} when it cannot run."""
     from lab.bench import dambreak
+    from lab.bench.common import json_finite
 
     reason = _why_unavailable()
     if reason:
@@ -110,7 +111,7 @@ def run(quick: bool) -> dict:
         runs.append({**raw, "error": error, "viscosity_m2_s": viscosity_m2_s(per_a)})
     if not runs:
         return {"available": False, "reason": "; ".join(skipped) or "no run finished"}
-    return dambreak._finite({"available": True, "version": runs[0].pop("version"), "threads": _threads(), "runs": runs, "skipped": skipped,
+    return json_finite({"available": True, "version": runs[0].pop("version"), "threads": _threads(), "runs": runs, "skipped": skipped,
             "setup": {"a_m": A_M, "tank_a": [TANK_LENGTH_A, TANK_HEIGHT_A], "particle_reynolds": PARTICLE_REYNOLDS,
                       "method": "DFSPH", "walls": "volume maps (Bender et al. 2019)"}})
 

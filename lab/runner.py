@@ -9,7 +9,6 @@ does not write is refused before the run starts (nothing is deleted that a run d
 import contextlib
 import errno
 import json
-import math
 import os
 import shutil
 import signal
@@ -113,27 +112,35 @@ def _swap_in(new: Path, out: Path) -> None:
             shutil.rmtree(aside, ignore_errors=True)
 
 
+def _steps_per_s(steps: int, wall_s: float) -> float | None:
+    """Steps per wall second after the first step, None (JSON null) without such steps or measurable time."""
+    return steps / wall_s if steps > 0 and wall_s > 0 else None
+
+
 def _simulate(scene: Scene, folder: Path, total: int, frame_every: int, progress: bool) -> dict:
     """Run `total` steps, writing frames then final.png (and its final_normal.png and final_roughness.png), state.npz and metrics.json into `folder`; return metrics."""
     if frame_every:
         (folder / "frames").mkdir()
         write_png(folder / "frames" / "frame_00000.png", scene.composite())
     start = time.perf_counter()
+    first_step = None  # wall s of step 1 with its check: the kernels load from the cache or compile then
     bar = tqdm(total=total, desc=scene.name, unit="step", file=sys.stderr, delay=1.0, disable=not progress, dynamic_ncols=True)
     with bar:
         for index in range(1, total + 1):
             scene.step()
             bar.update(1)
-            if index % FINITE_CHECK_EVERY == 0 or index == total:
-                bad = scene.non_finite_field()
+            if index % FINITE_CHECK_EVERY == 0 or index in (1, total):  # step 1: the check's kernel loads with the rest
+                bad = scene.non_finite_field()  # reads the device, so waits for the step
                 if bad:
                     raise SimulationDiverged(f"{bad} became non-finite at step {index} (t = {scene.time_s:.4g} s)")
+            if index == 1:
+                first_step = time.perf_counter() - start
             _warn_blood_lost(scene, bar)
             if frame_every and index % frame_every == 0:
                 write_png(folder / "frames" / f"frame_{index // frame_every:05d}.png", scene.composite())
     wall = time.perf_counter() - start
     metrics = scene.metrics()
-    metrics.update(wall_s=wall, finite=True, steps_per_s=total / wall if wall > 0 else math.inf)
+    metrics.update(wall_s=wall, finite=True, first_step_s=first_step, steps_per_s=_steps_per_s(total - 1, wall - (first_step or 0.0)))
     write_png(folder / "final.png", scene.composite())
     normal, roughness = scene.material_maps()
     write_png(folder / "final_normal.png", normal)

@@ -23,6 +23,8 @@ from sims.backend import cache_dir, read_cached_npz, save_cached_npz
 GRID_PADDING_MM = 3.0  # matches the largest contact distance (sims.params)
 SHAPE_CODES = {"ball": 0, "capsule": 1, "spatula": 2, "mesh": 3}
 POSE_WIDTH = 14  # floats per instrument pose uploaded at once (InstrumentFields.set_poses)
+CONTACT_SPACING_MM = 2.0  # a flat tool's contact points (Instrument.contact_points_mm) lie at most this far apart
+MAX_CONTACT_SAMPLES = 16  # ... and at most this many along its width and its length
 
 
 def local_frame(direction, roll_deg: float) -> np.ndarray:
@@ -119,6 +121,32 @@ class Instrument:
     def script_end_s(self) -> float:
         """Time of the last keyframe (0 without a path)."""
         return max((frame["t_s"] for frame in self.path), default=0.0)
+
+    @property
+    def flat(self) -> bool:
+        """A flat tool (a spatula) rests on the face of its blade: it is lowered, and its gap to the tissue measured,
+        straight down (world -z), not along its axis, which lies along the tissue."""
+        return self.shape["type"] == "spatula"
+
+    def lowered_along(self, pose: Pose) -> np.ndarray:
+        """The unit direction (3,) the tool is lowered along onto the tissue: its axis, or straight down for a flat tool."""
+        if self.flat:
+            return np.array([0.0, 0.0, -1.0])
+        return np.asarray(pose.direction, np.float64) / np.linalg.norm(pose.direction)
+
+    def contact_points_mm(self, pose: Pose) -> np.ndarray:
+        """Points on the tool (N, 3) mm, world, that first meet the tissue it is lowered onto (lowered_along): an axial
+        tool's tip; a grid over a flat tool's lower blade face, its lowest corner included and the points at most
+        CONTACT_SPACING_MM apart (for tissue curved under the blade)."""
+        position = np.asarray(pose.position_mm, np.float64)
+        if not self.flat:
+            return (position + self.lowered_along(pose) * self.tip_offset_mm())[None]
+        frame = _frame(tuple(np.asarray(pose.direction, np.float64).tolist()), float(pose.roll_deg))
+        width, thickness, length = (float(self.shape[key]) for key in ("width_mm", "thickness_mm", "length_mm"))
+        x, z = np.meshgrid(*(np.linspace(lo, hi, min(MAX_CONTACT_SAMPLES, 2 + int((hi - lo) / CONTACT_SPACING_MM)))
+                             for lo, hi in ((-width / 2, width / 2), (0.0, length))))
+        lower_face = -thickness / 2 if frame[1, 2] >= 0 else thickness / 2  # the face whose normal points down
+        return position + np.stack([x.ravel(), np.full(x.size, lower_face), z.ravel()], axis=1) @ frame
 
     def tip_offset_mm(self) -> float:
         """Distance from the tool's origin to its tip along `direction`, mm (where it first touches what it points at)."""

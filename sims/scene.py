@@ -164,8 +164,8 @@ class Scene:
         self.bleed_points = []
         self._active_tool = None      # (name, position mm, last move mm) of the heating tool last seen energized
         self._section_sampler = None  # sims.section.SectionSampler, made on the first burn_section()
-        self._triangles_mm = None     # (F, 3, 3) the mesh's triangles, for rays (tissue_distance_mm)
-        self._clearances = {}         # (tool, position, direction, tip offset) -> tool_clearance_mm
+        self._triangles_mm = None     # ((F, 3, 3) the mesh's triangles, their boxes' (3, F) low and high corners) mm, for rays
+        self._clearances = {}         # (tool, position, direction, roll) -> tool_clearance_mm
         self._parameters = None  # (tool and point names, parameter table) made by parameters()
         self._nearest: dict = {}      # world position (mm) -> nearest surface texel (texel_near)
         self._coagulated: dict = {}   # heat grid texel -> 1 - exp(-Omega) read since the burn last changed
@@ -442,42 +442,66 @@ class Scene:
         """How far the tissue is from a point along a direction (mm), or None when the ray misses it."""
         from sims.raycast import first_hit
 
-        direction = np.asarray(direction, np.float64)
+        direction = np.asarray(direction, np.float64) / np.linalg.norm(direction)
+        origin = np.asarray(position_mm, np.float64)
+        return first_hit(origin, direction, self._triangles_along(origin[None], direction))
+
+    def _triangles_along(self, starts: np.ndarray, direction: np.ndarray) -> np.ndarray:
+        """The tissue's triangles (K, 3, 3) mm that rays from starts (N, 3) mm along the unit direction (3,) may cross:
+        those whose bounding box meets the box holding the rays through the tissue. Few for rays close together along
+        an axis (a flat tool's, straight down): each ray then costs a fraction of one through the whole mesh."""
         if self._triangles_mm is None:
-            self._triangles_mm = self.surface.vertices_mm[self.surface.faces]
-        return first_hit(position_mm, direction / np.linalg.norm(direction), self._triangles_mm)
+            triangles = self.surface.vertices_mm[self.surface.faces]
+            self._triangles_mm = triangles, np.ascontiguousarray(triangles.min(axis=1).T), np.ascontiguousarray(triangles.max(axis=1).T)
+        triangles, low, high = self._triangles_mm
+        tissue_low, tissue_high = low.min(axis=1), high.max(axis=1)
+        through = np.linalg.norm(starts - (tissue_low + tissue_high) / 2, axis=1).max() + np.linalg.norm(tissue_high - tissue_low) / 2
+        ends = starts + direction * through  # past the tissue's far side
+        slack = 1e-3  # mm: a ray along a triangle's edge keeps it
+        box_low, box_high = np.minimum(starts, ends).min(axis=0) - slack, np.maximum(starts, ends).max(axis=0) + slack
+        keep = np.ones(len(triangles), bool)
+        for axis in range(3):  # one axis at a time: rows of (3, F) compare faster than a (F, 3) array
+            keep &= (low[axis] <= box_high[axis]) & (high[axis] >= box_low[axis])
+        return triangles[keep]
+
+    def _tissue_gap_mm(self, name: str, pose, behind_mm: float) -> float | None:
+        """Smallest gap (mm, negative: pressed in) between the tool at this pose and the tissue, along the direction
+        it is lowered (sims.instruments.Instrument.contact_points_mm, lowered_along); each ray starts behind_mm back, so
+        a tool pressed in still finds the surface. None when every ray misses the tissue."""
+        from sims.raycast import first_hit
+
+        tool = self.instrument(name)
+        direction = tool.lowered_along(pose)
+        starts = tool.contact_points_mm(pose) - direction * behind_mm
+        triangles = self._triangles_along(starts, direction)
+        hits = [hit for hit in (first_hit(start, direction, triangles) for start in starts) if hit is not None]
+        return min(hits) - behind_mm if hits else None
 
     def tool_clearance_mm(self, name: str) -> float | None:
-        """Gap between the tool's tip and the tissue along the tool's axis, mm (negative: pressed in), or None when
-        the axis misses the tissue."""
-        tool = self.instrument(name)
-        pose = tool.pose_at(self.time_s)
-        offset = tool.tip_offset_mm()
-        key = (name, tuple(pose.position_mm), tuple(pose.direction), offset)
+        """Gap between the tool and the tissue, mm (negative: pressed in), or None when there is no tissue to meet:
+        measured along the tool's axis from its tip, or for a flat tool straight down from its blade (the way
+        rest_on_tissue lowers it)."""
+        pose = self.instrument(name).pose_at(self.time_s)
+        key = (name, tuple(pose.position_mm), tuple(pose.direction), pose.roll_deg)
         if key not in self._clearances:  # the stats ask twice a second; a tool at rest needs no new ray
-            behind_mm = 5.0  # the ray starts this far behind the tip: a tip pressed in still finds the surface
-            start = pose.position_mm + pose.direction * (offset - behind_mm)
-            distance = self.tissue_distance_mm(start, pose.direction)
             if len(self._clearances) > 64:
                 self._clearances.clear()
-            self._clearances[key] = None if distance is None else distance - behind_mm
+            self._clearances[key] = self._tissue_gap_mm(name, pose, behind_mm=5.0)
         return self._clearances[key]
 
-    def rest_on_tissue(self, name: str, position_mm, depth_mm: float, direction=None) -> float | None:
-        """Place the tool by hand so that its tip is depth_mm into the tissue below position_mm along its axis (the
-        tool lowered onto the surface, as a hand rests it). Returns the distance moved along the axis (mm), or None when
-        there is no tissue under it (then it is placed at position_mm)."""
-        self.take_over(name, position_mm, direction)
+    def rest_on_tissue(self, name: str, position_mm, depth_mm: float, direction=None, roll_deg=None) -> float | None:
+        """Place the tool by hand so that it is depth_mm into the tissue below position_mm, as a hand rests it: lowered
+        along its axis until its tip is in, or a flat tool straight down until its blade's lowest point is in. Returns
+        the distance moved (mm), or None when there is no tissue under it (then it is placed at position_mm)."""
+        self.take_over(name, position_mm, direction, roll_deg)
         tool = self.instrument(name)
-        hand = tool.hand
-        offset = tool.tip_offset_mm()
-        reach = float(np.ptp(self.surface.vertices_mm, axis=0).max()) + POSITION_MARGIN_MM
-        start = hand.position_mm - hand.direction * reach
-        distance = self.tissue_distance_mm(start, hand.direction)
-        if distance is None:
+        pose = tool.pose_at(self.time_s)
+        reach = float(np.ptp(self.surface.vertices_mm, axis=0).max()) + POSITION_MARGIN_MM  # starts behind any tissue
+        gap = self._tissue_gap_mm(name, pose, reach)
+        if gap is None:
             return None
-        moved = distance - reach - offset + float(depth_mm)
-        hand.position_mm = hand.position_mm + hand.direction * moved
+        moved = gap + float(depth_mm)
+        tool.hand.position_mm = tool.hand.position_mm + tool.lowered_along(pose) * moved
         return moved
 
     def script_end_s(self) -> float:

@@ -5,7 +5,9 @@ import taichi as ti
 import trimesh
 
 from sims.cautery import Cautery
+from sims.config import REPO_ROOT, load_scene_config
 from sims.instruments import Instrument, InstrumentFields, local_frame
+from sims.scene import Scene
 from sims.surface import build_surface
 from tests.helpers import cautery_values, plane_mesh, tissue_values
 
@@ -123,3 +125,20 @@ def test_mesh_instrument_burns_like_the_same_analytic_shape(tmp_path):
     _, burned_box = press_flat(make_instrument(SPATULA, position=(6, 0, 0.3), direction=(1, 0, 0)))
     overlap = (burned_mesh & burned_box).sum() / (burned_mesh | burned_box).sum()
     assert burned_box.sum() > 1000 and overlap > 0.9
+
+
+def test_a_spatula_rests_flat_on_the_tissue_below_it():
+    """The default scene's spatula lies along the tissue (its axis never meets it): rested, it goes straight down until
+    its blade's lowest point is 0.2 mm in, its face on the tissue; its gap is measured the same way, and off the
+    tissue there is nothing to rest on."""
+    scene = Scene(load_scene_config(REPO_ROOT / "scenes" / "default.yaml", ["models=[]", "texture_size=64"]))
+    tool = scene.instrument("spatula")
+    start = tool.pose_at(0.0).position_mm
+    assert scene.tool_clearance_mm("spatula") == pytest.approx(3.9, abs=0.1), "the script holds it 4 mm above the tissue"
+    assert scene.rest_on_tissue("spatula", start + [0.0, 0.0, 10.0], 0.2) == pytest.approx(14.1, abs=0.1)
+    assert scene.tool_clearance_mm("spatula") == pytest.approx(-0.2, abs=1e-3)
+    pose = tool.pose_at(0.0)
+    assert pose.position_mm[:2] == pytest.approx(start[:2]) and pose.direction == pytest.approx(tool.base.direction / np.linalg.norm(tool.base.direction))
+    face = [scene.tissue_distance_mm(point + [0.0, 0.0, 5.0], [0.0, 0.0, -1.0]) - 5.0 for point in tool.contact_points_mm(pose)]
+    assert len(face) > 20 and max(face) < 0.0, f"the blade's face is not on the tissue: {np.round(face, 2)} mm"
+    assert scene.rest_on_tissue("spatula", [80.0, 0.0, 10.0], 0.2) is None and scene.tool_clearance_mm("spatula") is None

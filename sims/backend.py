@@ -62,6 +62,27 @@ def read_cached_npz(path: Path, *names: str):
         return None
 
 
+def prune_cache(folder: Path, max_bytes: int) -> None:
+    """Delete the least recently used entries (oldest modification time) of a cache folder until its files hold at
+    most max_bytes; a file another process removes meanwhile is skipped, and one being written (save_cached_npz's
+    hidden temporary name) is left alone."""
+    entries = []
+    for path in folder.iterdir():
+        if path.name.startswith("."):
+            continue
+        try:
+            info = path.stat()
+        except OSError:
+            continue
+        entries.append((info.st_mtime, info.st_size, path))
+    total = sum(size for _, size, _ in entries)
+    for _, size, path in sorted(entries):
+        if total <= max_bytes:
+            break
+        path.unlink(missing_ok=True)
+        total -= size
+
+
 def init(arch: str = "auto") -> str:
     """Start Taichi once per process and return the arch name it runs on ('x64', 'cuda', ...).
 

@@ -1,9 +1,16 @@
-"""A headless run's timings: the first step (kernels loaded or compiled) apart from the steps after it."""
+"""A headless run's timings and start-up: the first step (kernels loaded or compiled) apart from the steps after it;
+what a run imports; texel maps kept on disk."""
+import dataclasses
 import json
+import os
+import subprocess
+import sys
 
+import numpy as np
 import pytest
 
 from lab import runner
+from sims.config import REPO_ROOT
 from sims.scene import Scene
 from tests.test_cli import write_scene
 
@@ -36,3 +43,78 @@ def test_a_run_without_later_steps_has_no_rate(scene, tmp_path, duration_s, firs
     metrics = _metrics(scene, tmp_path, duration_s)
     assert metrics["steps_per_s"] is None
     assert (metrics["first_step_s"] is not None) == first_step
+
+
+def test_a_headless_run_imports_only_what_it_uses():
+    """The CLI's parser lists the bench sections without importing them: a run imported the lab's session (and the
+    bench's helpers) through that list."""
+    code = ("import sys\nimport lab.__main__\nlab.__main__.build_parser()\nimport lab.runner, sims.scene\n"
+            "print(sorted(name for name in ('lab.session', 'lab.app', 'lab.bench.common', 'viser', 'matplotlib') if name in sys.modules))")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO_ROOT, check=True)
+    assert result.stdout.strip().splitlines()[-1] == "[]"
+
+
+def test_texel_maps_are_built_once_per_mesh_and_size(tmp_path, monkeypatch):
+    """A second build of the same mesh at the same size (and its coarser heat grid) reads the texel maps from the cache
+    instead of rasterising again, and they are the same maps."""
+    from sims import surface as surfaces
+    from tests.helpers import plane_mesh
+
+    monkeypatch.setenv("TISSUE_LAB_CACHE", str(tmp_path))
+    size = 2 * surfaces.SURFACE_CACHE_MIN_SIZE  # the heat grid at half of it is kept too
+    mesh = plane_mesh(24.0, 12.0)
+    built = surfaces.build_surface(mesh, size)
+    coarse = surfaces.surface_at(built, size // 2)
+    monkeypatch.setattr(surfaces, "_rasterise", lambda *args: pytest.fail("rasterised again"))
+    for fresh, again in ((built, surfaces.build_surface(mesh, size)), (coarse, surfaces.surface_at(built, size // 2))):
+        for field in dataclasses.fields(fresh):
+            a, b = getattr(fresh, field.name), getattr(again, field.name)
+            assert type(a) is type(b) and np.array_equal(a, b) and np.asarray(a).dtype == np.asarray(b).dtype, field.name
+    other = plane_mesh(24.0, 12.1)  # another mesh is built, not read
+    with pytest.raises(pytest.fail.Exception, match="rasterised again"):
+        surfaces.build_surface(other, size)
+
+
+def test_the_surface_cache_keeps_within_its_bytes(tmp_path):
+    """Past its bytes, the least recently used entries go."""
+    from sims.backend import prune_cache
+
+    for index, age in enumerate((30, 10, 20)):
+        path = tmp_path / f"{index}.npz"
+        path.write_bytes(b"x" * 100)
+        os.utime(path, (1e9 + age, 1e9 + age))
+    prune_cache(tmp_path, 250)
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["0.npz", "2.npz"]
+
+
+def test_stage_textures_are_resampled_once_per_file_and_size(tmp_path, monkeypatch):
+    """A stage image read again at the same size comes from the cache, the same values; a changed file is read anew."""
+    from PIL import Image
+
+    from sims import compose
+
+    monkeypatch.setenv("TISSUE_LAB_CACHE", str(tmp_path / "cache"))
+    path = tmp_path / "stage.png"
+    Image.fromarray(np.random.default_rng(0).integers(0, 256, (40, 40, 3), dtype=np.uint8)).save(path)
+    first = compose.load_texture(path, 32, tile=2)
+    read = compose._read_texture
+    monkeypatch.setattr(compose, "_read_texture", lambda *args: pytest.fail("read again"))
+    again = compose.load_texture(path, 32, tile=2)
+    assert again.dtype == first.dtype == np.float32 and np.array_equal(again, first)
+    Image.new("RGB", (40, 40), (255, 0, 0)).save(path)
+    os.utime(path, ns=(1, 1))  # another modification time whatever the clock's resolution
+    monkeypatch.setattr(compose, "_read_texture", read)
+    assert np.array_equal(compose.load_texture(path, 32, tile=2)[0, 0], [1.0, 0.0, 0.0])
+
+
+def test_the_start_up_table_has_every_stage(tmp_path):
+    """The bench's start-up section: a row per stage in order, then their total."""
+    from lab.bench import SECTIONS, startup
+
+    seconds = {stage: 0.1 * (index + 1) for index, stage in enumerate(startup.STAGES)}
+    results = {"runs": 2, "arch": "cpu", "texture_size": 512, "plane_mm": 24.0, "process_s": 5.6, "process_range_s": [5.5, 5.9],
+               "stages_s": seconds}
+    rows = [line for line in startup.render(results) if line.startswith("| ") and not line.startswith("| stage")]
+    assert [row.split(" | ")[0][2:] for row in rows] == [*startup.STAGES, "total"]
+    assert rows[-1] == f"| total | {sum(seconds.values()):.2f} | 100 % |"
+    assert "startup" in SECTIONS and (tmp_path / startup.plot(results, tmp_path)[0]).stat().st_size > 10_000

@@ -1,26 +1,42 @@
 """CLI: python -m lab serve [SCENE] | run SCENE --out DIR [...] | bench [--quick] [--only SECTION ...] --out DIR. Exit codes: 0 done, 2 bad input, 3 non-finite simulation."""
-import argparse
 import sys
+
+from lab import interrupts
+
+if __name__ == "__main__":
+    interrupts.install()  # first: a Ctrl-C during the imports below is reported by main(), in one line
+
+import argparse
 from pathlib import Path
 
 from sims.backend import ARCH_CHOICES, ArchUnavailable
-from sims.config import REPO_ROOT, ConfigError
+from sims.config import REPO_ROOT, ConfigError, load_scene_config
+from sims.params import SIMULATION, quote
 
 DEFAULT_SCENE = REPO_ROOT / "scenes" / "default.yaml"
+MAX_RUN_S = SIMULATION["duration_s"].max  # --duration and --frames-every are capped as a scene's duration_s is
 
 
-def _positive(text: str) -> float:
+class _Parser(argparse.ArgumentParser):
+    """Command-line errors in one line and exit 2, as every other bad input (argparse prints its usage first)."""
+
+    def error(self, message):
+        self.exit(2, f"error: {self.prog}: {message} (see {self.prog} --help)\n")
+
+
+def _seconds(text: str) -> float:
+    """Simulated seconds in [0, MAX_RUN_S] (argparse type)."""
     try:
         value = float(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not value >= 0 or value == float("inf"):
-        raise argparse.ArgumentTypeError(f"expected a finite number >= 0, got {text}")
+        raise argparse.ArgumentTypeError(f"expected a number of seconds, got {quote(text)}") from None
+    if not 0 <= value <= MAX_RUN_S:  # NaN fails too
+        raise argparse.ArgumentTypeError(f"expected seconds in [0, {MAX_RUN_S:g}] (as a scene's duration_s), got {quote(text)}")
     return value
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="python -m lab", description="Surgical surface-effects lab: cautery burn marks in texture space.")
+    parser = _Parser(prog="python -m lab", description="Surgical surface-effects lab: cautery burn marks in texture space.")
     commands = parser.add_subparsers(dest="command", required=True)
     serve = commands.add_parser("serve", help="open the browser lab on a scene (default scenes/default.yaml)")
     serve.add_argument("scene", nargs="?", default=str(DEFAULT_SCENE), help="scene YAML file")
@@ -33,23 +49,28 @@ def build_parser() -> argparse.ArgumentParser:
     run = commands.add_parser("run", help="run a scene headless and write metrics.json, final.png, state.npz")
     run.add_argument("scene", help="scene YAML file")
     run.add_argument("--out", required=True, help="output folder")
-    run.add_argument("--duration", type=_positive, help="simulated seconds (default: the scene's duration_s)")
-    run.add_argument("--frames-every", type=_positive, metavar="S", help="also write frames/frame_NNNNN.png every S simulated seconds")
+    run.add_argument("--duration", type=_seconds, help="simulated seconds (default: the scene's duration_s)")
+    run.add_argument("--frames-every", type=_seconds, metavar="S", help="also write frames/frame_NNNNN.png every S simulated seconds")
     run.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a scene key, e.g. tissue.conductivity_w_mk=0.6 or instruments.0.tip_temperature_c=300")
     run.add_argument("--arch", choices=ARCH_CHOICES, default="auto", help="Taichi device: auto (GPU if present, else CPU), cpu or gpu")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
     bench = commands.add_parser("bench", help="measure speed next to error and write DIR/report.md and DIR/results.json")
     bench.add_argument("--quick", action="store_true", help="fewer sizes and steps (about 3 minutes on 2 cores; the full run takes under 30)")
-    from lab.bench import SECTIONS
-
-    bench.add_argument("--only", nargs="+", metavar="SECTION", help="run only these sections: " + " ".join(SECTIONS))
+    # not lab.bench.SECTIONS here: importing lab.bench starts Taichi (2.7 s) before any command's arguments are checked
+    bench.add_argument("--only", nargs="+", metavar="SECTION", help="run only these sections (a name it does not know lists them)")
     bench.add_argument("--out", required=True, help="output folder")
     bench.add_argument("--arch", choices=ARCH_CHOICES, default="auto", help="Taichi device")
     return parser
 
 
 def main(argv=None) -> int:
-    args = build_parser().parse_args(argv)
+    try:
+        interrupts.arm()
+        args = build_parser().parse_args(argv)
+        interrupts.check()  # one that an import swallowed
+    except KeyboardInterrupt:
+        print("interrupted while starting; nothing done", file=sys.stderr)
+        return 130
     command = {"serve": _serve, "run": _run, "bench": _bench}[args.command]
     where = getattr(args, "scene", None) or "bench"
     try:
@@ -60,15 +81,20 @@ def main(argv=None) -> int:
     except ArchUnavailable as exc:
         print(f"error: {where}: --arch: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:  # the run command says more where it can (_run)
+        print(f"interrupted ({args.command})", file=sys.stderr)
+        return 130
 
 
 def _run(args) -> int:
     """Exit codes as in the module docstring, and 130 after Ctrl-C (one line on stderr; --out left as it was)."""
-    from lab import runner
-    from sims.scene import Scene
-
     try:
-        scene = Scene.from_file(args.scene, args.set, arch=args.arch)
+        config = load_scene_config(args.scene, args.set)  # before Taichi is imported (2 s): a bad file is told at once
+        from lab import runner
+        from sims.scene import Scene
+
+        scene = Scene(config, arch=args.arch)
+        interrupts.check()  # one that an import swallowed (trimesh, Taichi)
     except KeyboardInterrupt:
         print(f"interrupted while building the scene; {args.out} left as it was", file=sys.stderr)
         return 130
@@ -111,4 +137,6 @@ def _bench(args) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    code = main()
+    interrupts.arm(False)  # done: a Ctrl-C now changes nothing, and must not print a traceback while Python exits
+    sys.exit(code)

@@ -20,9 +20,16 @@ from pathlib import Path
 import yaml
 
 from sims import params
+from sims.params import quote
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 MAX_SCENE_BYTES = 1_000_000  # a scene file is a page of YAML; anything larger is refused before it is read
+# YAML aliases repeat a node without repeating its text: 380 bytes can stand for a billion strings ("billion laughs").
+# Counted as characters of scalars plus one per node, a scene without aliases comes to at most twice its bytes
+# (`{a, b}`: each key adds a null); one whose aliases expand it further, or that nests deeper, is refused.
+MAX_EXPANDED = 4 * MAX_SCENE_BYTES
+MAX_DEPTH = 32  # nesting of YAML collections (a scene nests 6 deep; PyYAML's composer recurses, 1000 deep overflows)
+KEY_CHARS = 120  # of a dotted key shown in a message (the longest a scene has is under 50)
 NAME_PATTERN = re.compile(r"[A-Za-z0-9_\-]{1,64}")
 MODELS = ("cautery", "bleeding")
 STAGE_FIELDS = ("coagulation", "char", "omega", "temperature_c", "coagulation_depth_mm")
@@ -67,13 +74,17 @@ class _Context:
         self.notes.append(f"{key}: {message}")
 
     def fail(self, key: str, message: str):
-        raise ConfigError(self.file, key or "(top level)", message)
+        key = key or "(top level)"
+        raise ConfigError(self.file, key if len(key) <= KEY_CHARS else key[: KEY_CHARS - 3] + "...", message)
 
     def resolve(self, key: str, name: str) -> Path:
-        """A relative path: the scene's folder, then the repo root, then static/."""
+        """A relative path: the scene's folder, then the repo root, then static/. The first that exists must be a
+        regular file (a FIFO or a device such as /dev/zero is refused unopened: reading it would never end)."""
         path = Path(name).expanduser()
         candidates = [path] if path.is_absolute() else [self.file.parent / path, REPO_ROOT / path, REPO_ROOT / "static" / path]
         for candidate in candidates:
+            if candidate.exists() and not candidate.is_file():
+                self.fail(key, f"not a regular file: {candidate}")
             if candidate.is_file():
                 try:
                     with open(candidate, "rb") as handle:
@@ -107,7 +118,7 @@ class Boolean:
 
     def validate(self, value, key, ctx):
         if not isinstance(value, bool):
-            ctx.fail(key, f"expected true or false, got {value!r}")
+            ctx.fail(key, f"expected true or false, got {quote(value)}")
         return value
 
 
@@ -117,9 +128,9 @@ class Text:
 
     def validate(self, value, key, ctx):
         if not isinstance(value, str) or not value:
-            ctx.fail(key, f"expected a non-empty string, got {value!r}")
+            ctx.fail(key, f"expected a non-empty string, got {quote(value)}")
         if self.choices and value not in self.choices:
-            ctx.fail(key, f"unknown value {value!r}; expected one of: {', '.join(self.choices)}")
+            ctx.fail(key, f"unknown value {quote(value)}; expected one of: {', '.join(self.choices)}")
         return value
 
 
@@ -129,7 +140,7 @@ class Name(Text):
     def validate(self, value, key, ctx):
         value = super().validate(value, key, ctx)
         if not NAME_PATTERN.fullmatch(value):
-            ctx.fail(key, f"{value!r}: a name takes letters, digits, _ and - only")
+            ctx.fail(key, f"{quote(value)}: a name takes letters, digits, _ and - only")
         return value
 
 
@@ -144,12 +155,12 @@ class Vector:
 
     def validate(self, value, key, ctx):
         if not isinstance(value, (list, tuple)) or len(value) != self.length:
-            ctx.fail(key, f"expected a list of {self.length} numbers, got {value!r}")
+            ctx.fail(key, f"expected a list of {self.length} numbers, got {quote(value)}")
         for item in value:
-            if isinstance(item, bool) or not isinstance(item, (int, float)) or not math.isfinite(item):
-                ctx.fail(key, f"expected finite numbers, got {value!r}")
+            if isinstance(item, bool) or not isinstance(item, (int, float)) or isinstance(item, float) and not math.isfinite(item):
+                ctx.fail(key, f"expected finite numbers, got {quote(value)}")
             if abs(item) > self.bound:
-                ctx.fail(key, f"{item} is outside [-{self.bound:g}, {self.bound:g}]")
+                ctx.fail(key, f"{quote(item)} is outside [-{self.bound:g}, {self.bound:g}]")
         if self.nonzero and not any(value):
             ctx.fail(key, "must not be the zero vector")
         return [float(item) for item in value]
@@ -382,17 +393,84 @@ SCENE = Record(
 )
 
 
+# --- reading YAML from outside ---------------------------------------------------------------
+
+class _Refused(yaml.MarkedYAMLError):
+    """YAML that parses but is refused: nested too deep, aliases that expand too far, a value Python cannot hold."""
+
+
+class _SceneLoader(yaml.SafeLoader):
+    """yaml.SafeLoader bounded for untrusted text (MAX_DEPTH, MAX_EXPANDED) that reads `1e-3` as a number, as YAML 1.2
+    does (YAML 1.1 reads an exponent without a dot, or without a sign, as text)."""
+
+    depth = 0  # collections being composed
+
+    def compose_node(self, parent, index):
+        if self.depth >= MAX_DEPTH:
+            raise _Refused(problem=f"nested more than {MAX_DEPTH} levels deep", problem_mark=self.peek_event().start_mark)
+        self.depth += 1
+        try:
+            return super().compose_node(parent, index)
+        finally:
+            self.depth -= 1
+
+    def compose_document(self):
+        node = super().compose_document()
+        if _expanded_size(node, {}, set()) > MAX_EXPANDED:
+            raise _Refused(problem=f"its aliases expand it to more than {MAX_EXPANDED} characters")
+        return node
+
+    def construct_object(self, node, deep=False):
+        try:
+            return super().construct_object(node, deep)
+        except (ValueError, OverflowError) as exc:  # an integer of over 4300 digits, a 13th month
+            raise _Refused(problem=f"cannot read this value ({str(exc).partition(':')[0]})", problem_mark=node.start_mark) from None
+
+
+_SceneLoader.add_implicit_resolver("tag:yaml.org,2002:float", re.compile(r"^[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9_]+)[eE][-+]?[0-9]+$"),
+                                   list("-+0123456789."))
+
+
+def _expanded_size(node, sizes: dict, open_nodes: set) -> int:
+    """Characters of the scalars under `node` plus one per node, every alias expanded (an aliased node is one object
+    shared by every alias: memoised in `sizes` by id). Raises _Refused on an alias inside the node it names."""
+    if id(node) in sizes:
+        return sizes[id(node)]
+    if isinstance(node, yaml.ScalarNode):
+        size = 1 + len(node.value)
+    else:
+        if id(node) in open_nodes:
+            raise _Refused(problem="an alias refers to a node that holds it", problem_mark=node.start_mark)
+        open_nodes.add(id(node))
+        children = node.value if isinstance(node, yaml.SequenceNode) else [item for pair in node.value for item in pair]
+        size = 1 + sum(_expanded_size(child, sizes, open_nodes) for child in children)
+        open_nodes.discard(id(node))
+    sizes[id(node)] = size
+    return size
+
+
+def _load_yaml(text: str):
+    """The value of YAML `text` from outside. Raises ValueError: ("line N" or "(yaml)", one-line message)."""
+    try:
+        return yaml.load(text, Loader=_SceneLoader)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        where = f"line {mark.line + 1}" if mark is not None else "(yaml)"
+        raise ValueError(where, problem if isinstance(exc, _Refused) else f"YAML syntax error: {problem}") from None
+
+
 # --- entry points ---------------------------------------------------------------------------
 
 def parse_override(text: str) -> tuple[list[str], object]:
     """`dotted.key=value` -> (path parts, YAML-parsed value). Raises ValueError on bad syntax."""
     key, sep, raw = text.partition("=")
     if not sep or not key.strip():
-        raise ValueError(f"--set expects dotted.key=value, got {text!r}")
+        raise ValueError(f"--set expects dotted.key=value, got {quote(text)}")
     try:
-        value = yaml.safe_load(raw) if raw.strip() else None
-    except yaml.YAMLError as exc:
-        raise ValueError(f"--set {key}: value is not valid YAML: {exc}") from None
+        value = _load_yaml(raw) if raw.strip() else None
+    except ValueError as exc:
+        raise ValueError(f"--set {quote(key.strip())}: value: {exc.args[1]}") from None
     return key.strip().split("."), value
 
 
@@ -404,7 +482,7 @@ def apply_override(raw: dict, parts: list[str], value, ctx: _Context) -> None:
         last = depth == len(parts) - 1
         if isinstance(node, list):
             if not part.isdigit() or int(part) >= len(node):
-                ctx.fail(key, f"--set: no list item {part!r} (the list has {len(node)} items)")
+                ctx.fail(key, f"--set: no list item {quote(part)} (the list has {len(node)} items)")
             index = int(part)
             if last:
                 node[index] = value
@@ -413,10 +491,14 @@ def apply_override(raw: dict, parts: list[str], value, ctx: _Context) -> None:
         elif isinstance(node, dict):
             if last:
                 node[part] = value
-            else:
-                node = node.setdefault(part, {})
+                continue
+            if node.get(part) is None:
+                if parts[depth + 1].isdigit():  # not a mapping with a key "0": say what is missing
+                    ctx.fail(key, f"--set: the scene has no {key}, so no item {quote(parts[depth + 1])} to set")
+                node[part] = {}
+            node = node[part]
         else:
-            ctx.fail(".".join(parts[:depth]), f"--set: cannot set {part!r} inside a {type(node).__name__}")
+            ctx.fail(".".join(parts[:depth]), f"--set: cannot set {quote(part)} inside a {type(node).__name__}")
 
 
 def _read_scene_text(path: Path, ctx: _Context) -> str:
@@ -447,12 +529,9 @@ def load_scene_config(path, overrides: list[str] = ()) -> dict:
     ctx = _Context(path)
     text = _read_scene_text(path, ctx)
     try:
-        raw = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f"line {mark.line + 1}" if mark is not None else "(yaml)"
-        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
-        ctx.fail(where, f"YAML syntax error: {problem}")
+        raw = _load_yaml(text)
+    except ValueError as exc:
+        ctx.fail(*exc.args)
     if not isinstance(raw, dict):
         ctx.fail("(top level)", f"a scene must be a YAML mapping, got {type(raw).__name__}")
     for text_override in overrides:

@@ -221,15 +221,19 @@ def mesh_sdf_grid(path, resolution: int):
     box by GRID_PADDING_MM plus 3 cells, so every distance up to the largest contact distance is
     sampled from the grid; farther out the box-projection estimate is an upper bound.
     """
+    import io
+
     import trimesh
 
-    data = open(path, "rb").read()
+    from sims.surface import read_mesh_file
+
+    data, kind = read_mesh_file(path)  # the checks of sims.surface.load_mesh (size, a regular file) before reading it
     key = hashlib.sha1(data + f"{resolution}:{GRID_PADDING_MM}".encode()).hexdigest()
     cached = cache_dir() / "sdf" / f"{key}.npz"
     saved = read_cached_npz(cached, "grid", "origin", "spacing")
     if saved is not None:
         return saved[0], saved[1], float(saved[2])
-    mesh = trimesh.load(str(path), force="mesh")
+    mesh = trimesh.load(io.BytesIO(data), file_type=kind, force="mesh")
     lo, hi = mesh.bounds
     spacing = float((hi - lo).max() / resolution)
     pad = GRID_PADDING_MM + 3 * spacing

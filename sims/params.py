@@ -2,7 +2,21 @@
 from __future__ import annotations
 
 import math
+import reprlib
 from dataclasses import dataclass
+
+QUOTE_CHARS = 40  # of a value from outside quoted in a message: a scene, --set or a browser can send megabytes
+_QUOTE = reprlib.Repr()
+_QUOTE.maxlevel, _QUOTE.maxstring, _QUOTE.maxother = 3, QUOTE_CHARS, QUOTE_CHARS  # a nested value costs little to quote
+
+
+def quote(value) -> str:
+    """repr(value) cut to at most QUOTE_CHARS characters, at bounded cost whatever the value's size."""
+    try:
+        text = _QUOTE.repr(value)
+    except ValueError:  # an int of more than sys.get_int_max_str_digits() digits
+        text = f"<an integer of {value.bit_length()} bits>"
+    return text if len(text) <= QUOTE_CHARS else text[: QUOTE_CHARS - 3] + "..."
 
 
 @dataclass(frozen=True)
@@ -20,13 +34,13 @@ class ParamSpec:
     def check(self, value) -> str | None:
         """Return what is wrong with `value`, or None when it is acceptable."""
         if isinstance(value, bool) or not isinstance(value, (int, float)):
-            return f"expected a number ({self.unit}), got {type(value).__name__} {value!r}"
-        if not math.isfinite(value):
+            return f"expected a number ({self.unit}), got {type(value).__name__} {quote(value)}"
+        if isinstance(value, float) and not math.isfinite(value):  # (math.isfinite overflows on a huge int)
             return f"must be finite, got {value}"
         if self.integer and int(value) != value:
             return f"must be a whole number, got {value}"
         if not self.min <= value <= self.max:
-            return f"{value} is outside [{self.min:g}, {self.max:g}] {self.unit}"
+            return f"{quote(value)} is outside [{self.min:g}, {self.max:g}] {self.unit}"
         return None
 
 

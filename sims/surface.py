@@ -6,7 +6,12 @@ u = (c + 0.5) / W, v = 1 - (r + 0.5) / H. "Grid coordinates" x = u W (columns) a
 """
 
 import hashlib
+import io
+import os
+import re
+import stat
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import taichi as ti
@@ -14,10 +19,18 @@ import trimesh
 from scipy import ndimage
 
 from sims.backend import cache_dir, read_cached_npz, save_cached_npz
+from sims.params import quote
 
 UV_OVERLAP_TOLERANCE = 1e-3  # fraction of covered texels two triangles may both claim before UVs count as overlapping
 MAX_COORDINATE_MM = 1e5  # a vertex farther out than this (100 m) is a unit or export error, not tissue
 SMALL_MESH_MM = 1.0      # a tissue mesh whose bounding box diagonal is shorter than this is probably in metres
+# Mesh files are refused before trimesh parses them when larger than this (parsing an OBJ takes about twice its size
+# again: a 1 GB one peaked at 2.2 GB before its error) or declaring more vertices or faces (PLY header, binary STL
+# count, OBJ lines). 4 million faces with UVs fit in the byte bound; the meshes here have 10^4-10^5.
+MAX_MESH_BYTES = 256 << 20
+MAX_MESH_ELEMENTS = 4_000_000
+MESH_TYPES = ("obj", "ply", "stl", "glb", "off")  # by suffix; never archives (zip, tar: trimesh would unpack them)
+_PLY_ELEMENT = re.compile(rb"^element\s+(\S+)\s+(\d+)", re.MULTILINE)
 _BARY_EPS = 1e-5
 # Triangle shape limits (per triangle, on its texels' sides in mm: the singular values of [dP/dx dP/dy]).
 # The explicit heat substep count grows as 1 / (shortest texel side)^2, and a texel's conductance toward its
@@ -75,12 +88,52 @@ class TissueSurface:
         return f"mesh is {diagonal:.3g} mm across: is it in metres? lengths are in millimetres"
 
 
-def load_mesh(path) -> trimesh.Trimesh:
-    """Read any mesh trimesh reads (OBJ, PLY, GLB, STL) without merging UV seams. Raises MeshError."""
+def read_mesh_file(path) -> tuple[bytes, str]:
+    """(bytes, trimesh file type) of a mesh file of a type in MESH_TYPES, checked before anything parses it: a regular
+    file (a FIFO or a device is refused unread) of at most MAX_MESH_BYTES and MAX_MESH_ELEMENTS. Raises MeshError."""
+    kind = Path(path).suffix.lower().lstrip(".")
+    if kind not in MESH_TYPES:
+        raise MeshError(f"cannot read a mesh of type {quote(Path(path).suffix)}; use one of .{', .'.join(MESH_TYPES)}")
     try:
-        mesh = trimesh.load(str(path), force="mesh", process=False)
+        with open(os.open(path, os.O_RDONLY | os.O_NONBLOCK), "rb") as handle:  # non-blocking: a FIFO opens at once
+            info = os.fstat(handle.fileno())
+            if not stat.S_ISREG(info.st_mode):
+                raise MeshError("not a regular file")
+            if info.st_size > MAX_MESH_BYTES:
+                raise MeshError(f"{info.st_size} bytes; a mesh file is at most {MAX_MESH_BYTES} bytes")
+            data = handle.read(MAX_MESH_BYTES + 1)
+    except OSError as exc:
+        raise MeshError(f"cannot read mesh: {exc.strerror or exc}") from None
+    if len(data) > MAX_MESH_BYTES:
+        raise MeshError(f"more than {MAX_MESH_BYTES} bytes; a mesh file is at most that")
+    for what, count in _declared_elements(data, kind):
+        if count > MAX_MESH_ELEMENTS:
+            raise MeshError(f"{count} {what}; a mesh has at most {MAX_MESH_ELEMENTS}")
+    return data, kind
+
+
+def _declared_elements(data: bytes, kind: str) -> list[tuple[str, int]]:
+    """(what, count) of the elements a mesh file declares where that is cheap to read: a PLY header's elements, a
+    binary STL's triangle count, an OBJ's vertex and face lines."""
+    if kind == "ply":
+        header = data[: data.find(b"end_header")] if b"end_header" in data[:65536] else data[:65536]
+        return [(f"{name.decode(errors='replace')[:20]} elements", int(count[:20])) for name, count in _PLY_ELEMENT.findall(header)]
+    if kind == "stl" and data[:5].lower() != b"solid" and len(data) >= 84:
+        return [("triangles", int.from_bytes(data[80:84], "little"))]
+    if kind == "obj":
+        return [("vertex lines", data.count(b"\nv ") + data.startswith(b"v ")), ("face lines", data.count(b"\nf ") + data.startswith(b"f "))]
+    return []
+
+
+def load_mesh(path) -> trimesh.Trimesh:
+    """Read a mesh (read_mesh_file: OBJ, PLY, GLB, STL, OFF) without merging UV seams. Raises MeshError.
+
+    Parsed from its bytes, so trimesh reads no other file (an OBJ's mtllib and textures are not needed)."""
+    data, kind = read_mesh_file(path)
+    try:
+        mesh = trimesh.load(io.BytesIO(data), file_type=kind, force="mesh", process=False)
     except Exception as exc:  # trimesh raises many types for unreadable files
-        raise MeshError(f"cannot read mesh: {exc}") from None
+        raise MeshError(f"cannot read mesh: {(str(exc).strip() or type(exc).__name__).splitlines()[0][:120]}") from None
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise MeshError("the file holds no triangles")
     check_vertices(mesh.vertices)

@@ -1,5 +1,7 @@
 """The run command: outputs, determinism, and one clear line for every class of bad input."""
 import json
+import os
+import resource
 import subprocess
 import sys
 from pathlib import Path
@@ -240,3 +242,87 @@ def test_non_finite_state_stops_the_run_naming_field_and_step(tmp_path, monkeypa
     code, lines = run_cli(capsys, path, "--out", tmp_path / "out")
     assert code == 3 and len(lines) == 1
     assert "temperature_c became non-finite at step 50" in lines[0]
+
+
+# --- hostile and careless input (issue 38 point 8): one line, exit 2, at bounded cost -------------------------
+
+def run_limited(*args, env=None) -> subprocess.CompletedProcess:
+    """`python -m lab run ARGS --quiet` in a process held to 2 GB of address space (the inputs below once took 2-4 GB)."""
+    def limit():
+        resource.setrlimit(resource.RLIMIT_AS, (2 << 30, 2 << 30))
+
+    return subprocess.run([sys.executable, "-m", "lab", "run", *map(str, args), "--quiet"], capture_output=True, text=True,
+                          cwd=REPO_ROOT, timeout=120, preexec_fn=limit, env=env)
+
+
+def one_line(result: subprocess.CompletedProcess) -> str:
+    """The one line a refused run printed on stderr (it exited 2, without a traceback)."""
+    assert result.returncode == 2 and len(result.stderr.strip().splitlines()) == 1, result.stderr[-2000:]
+    return result.stderr.strip()
+
+
+def yaml_bomb(levels: int = 9) -> str:
+    """A YAML flow list of about 300 bytes whose aliases stand for 9**levels strings ("billion laughs")."""
+    items = ["&a0 [lol, lol, lol, lol, lol, lol, lol, lol, lol]"]
+    items += [f"&a{n} [" + ", ".join([f"*a{n - 1}"] * 9) + "]" for n in range(1, levels)]
+    return "[" + ", ".join(items) + "]"
+
+
+@pytest.mark.parametrize("where", ["name", "gravity_mm_s2", "--set"])
+def test_yaml_bomb_is_refused_in_one_line(tmp_path, where):
+    """Before: the validators put the whole value's repr in their message (4 GB in 40 s)."""
+    if where == "--set":
+        path, extra = write_scene(tmp_path), ["--set", f"name={yaml_bomb()}"]
+    else:
+        path, extra = write_scene(tmp_path, text=yaml.safe_dump(bad(delete=[where] if where == "name" else [])) + f"{where}: {yaml_bomb()}\n"), []
+    line = one_line(run_limited(path, "--out", tmp_path / "out", *extra))
+    assert "its aliases expand it to more than" in line and not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("text, key, message", [
+    ("gravity_mm_s2: " + "[" * 2000 + "]" * 2000, "line", "nested more than 32 levels deep"),  # was a RecursionError
+    ("texture_size: " + "9" * 5000, "line", "cannot read this value"),  # was a ValueError (int of over 4300 digits)
+    ("texture_size: " + "9" * 4000, "texture_size", "is outside [16, 2048]"),  # was an OverflowError (math.isfinite)
+    ("texture_size: " + "x" * 100_000, "texture_size", "expected a number"),  # was quoted whole: a 100 kB line
+], ids=["deep", "int of 5000 digits", "int of 4000 digits", "100 kB string"])
+def test_malformed_values_are_refused_in_one_short_line(tmp_path, capsys, text, key, message):
+    head = yaml.safe_dump(bad(delete=["texture_size"]))
+    key = f"line {head.count(chr(10)) + 1}" if key == "line" else key  # the line of `text`
+    path = write_scene(tmp_path, text=head + text + "\n")
+    code, lines = run_cli(capsys, path, "--out", tmp_path / "out")
+    assert code == 2 and len(lines) == 1 and len(lines[0]) < len(str(path)) + 200, lines
+    assert lines[0].startswith(f"error: {path}: {key}: ") and message in lines[0]
+
+
+def test_an_exponent_without_a_dot_is_a_number(tmp_path):
+    """YAML 1.1 reads 1e-3 as text (it was refused as "got str '1e-3'"); YAML 1.2 and every user read a number."""
+    from sims.config import load_scene_config
+
+    path = write_scene(tmp_path, text=yaml.safe_dump(bad(delete=["duration_s"])) + "duration_s: 5E-1\n")
+    config = load_scene_config(path, ["time_step_s=1e-3", "instruments.0.tip_temperature_c=2.5e2"])
+    assert (config["time_step_s"], config["duration_s"], config["instruments"][0]["tip_temperature_c"]) == (0.001, 0.5, 250.0)
+    assert load_scene_config(path, ["name=1e3x"])["name"] == "1e3x"
+
+
+def test_set_into_a_list_the_scene_lacks_says_so(tmp_path, capsys):
+    """Was "expected a list, got dict" (the override made a mapping {"0": ...})."""
+    code, lines = run_cli(capsys, write_scene(tmp_path), "--out", tmp_path / "out", "--set", "bleed_points.0.name=x")
+    assert code == 2 and len(lines) == 1
+    assert lines[0].endswith("bleed_points: --set: the scene has no bleed_points, so no item '0' to set"), lines
+
+
+@pytest.mark.parametrize("special", ["fifo", "/dev/zero"])
+def test_a_mesh_that_is_not_a_regular_file_is_refused_unread(tmp_path, capsys, special):
+    """Was "file not found"; a FIFO is never opened (that would wait for a writer)."""
+    if special == "fifo":
+        os.mkfifo(tmp_path / "fifo")
+        special = str(tmp_path / "fifo")
+    code, lines = run_cli(capsys, write_scene(tmp_path), "--out", tmp_path / "out", "--set", f"mesh={special}")
+    assert code == 2 and lines == [f"error: {tmp_path / 'scene.yaml'}: mesh: not a regular file: {special}"]
+
+
+@pytest.mark.parametrize("option", ["--duration", "--frames-every"])
+def test_seconds_beyond_a_scene_duration_are_refused_in_one_line(tmp_path, option):
+    """--duration 1e308 ended in an OverflowError traceback, exit 1 (a scene's duration_s is capped at 3600 s)."""
+    line = one_line(run_limited(write_scene(tmp_path), "--out", tmp_path / "out", option, "1e308"))
+    assert line.startswith(f"error: python -m lab run: argument {option}: expected seconds in [0, 3600]")

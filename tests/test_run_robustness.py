@@ -14,9 +14,10 @@ import trimesh
 
 from sims.cautery import MAX_SUBSTEPS
 from sims.config import REPO_ROOT
+from sims.surface import MAX_MESH_BYTES, MAX_MESH_ELEMENTS
 from tests.helpers import interruptible, plane_mesh
 from lab.__main__ import main
-from tests.test_cli import bad, run_cli, write_scene
+from tests.test_cli import bad, one_line, run_cli, run_limited, write_scene
 
 
 def write_obj(path: Path, vertices, faces, uv=None) -> Path:
@@ -237,3 +238,70 @@ def test_sigint_to_a_real_run_exits_130_and_keeps_the_previous_outputs(tmp_path,
     assert "Traceback" not in stderr
     assert stderr.strip().splitlines()[-1].endswith(f"s; previous outputs in {out} kept")
     assert outputs(out) == before and not leftovers(out)
+
+
+@pytest.mark.parametrize("suffix", [".ply", ".obj", ".stl"])
+def test_an_oversized_mesh_file_is_refused_before_it_is_read(tmp_path, suffix):
+    """A 1 GB sparse file: .ply passed 4 GB of memory, .obj and .stl peaked at 2.2 GB before their error."""
+    mesh = tmp_path / f"huge{suffix}"
+    with open(mesh, "wb") as handle:
+        handle.truncate(1 << 30)
+    line = one_line(run_limited(mesh_scene(tmp_path, mesh), "--out", tmp_path / "out"))
+    assert line.endswith(f"mesh: {mesh}: {1 << 30} bytes; a mesh file is at most {MAX_MESH_BYTES} bytes")
+
+
+def test_a_mesh_header_declaring_too_many_faces_is_refused(tmp_path, capsys):
+    """The PLY header's counts are read before trimesh allocates for them."""
+    mesh = tmp_path / "liar.ply"
+    mesh.write_text("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+                    "element face 1000000000\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n")
+    code, lines = run_cli(capsys, mesh_scene(tmp_path, mesh), "--out", tmp_path / "out")
+    assert code == 2 and len(lines) == 1 and lines[0].endswith(f"1000000000 face elements; a mesh has at most {MAX_MESH_ELEMENTS}")
+
+
+SIGINT_DURING_IMPORT = """import os, signal, sys
+class _Hook:
+    def find_spec(self, name, path=None, target=None):
+        if name == os.environ["SIGINT_AT_IMPORT"]:
+            sys.meta_path.remove(self)
+            os.kill(os.getpid(), signal.SIGINT)
+sys.meta_path.insert(0, _Hook())
+"""
+
+
+@pytest.mark.parametrize("module, line", [
+    ("yaml", "interrupted while starting; nothing done"),  # the CLI module's own imports: was a traceback
+    ("taichi", "interrupted while building the scene; {out} left as it was"),  # was a traceback
+    ("trimesh.voxel", "interrupted while building the scene; {out} left as it was"),  # trimesh swallowed it: was lost
+])
+def test_ctrl_c_while_the_cli_starts_is_one_line_and_never_lost(tmp_path, module, line):
+    """Ctrl-C as the import of `module` begins (a sitecustomize hook sends the SIGINT)."""
+    (tmp_path / "hook").mkdir()
+    (tmp_path / "hook" / "sitecustomize.py").write_text(SIGINT_DURING_IMPORT)
+    env = {**os.environ, "SIGINT_AT_IMPORT": module, "PYTHONPATH": os.pathsep.join(filter(None, [str(tmp_path / "hook"), os.environ.get("PYTHONPATH")]))}
+    out = tmp_path / "out"
+    result = subprocess.run([sys.executable, "-m", "lab", "run", str(write_scene(tmp_path)), "--out", str(out), "--quiet"], capture_output=True,
+                            text=True, cwd=REPO_ROOT, timeout=120, env=env, preexec_fn=interruptible)
+    assert (result.returncode, result.stderr) == (130, line.format(out=out) + "\n")
+    assert not out.exists() and not leftovers(out)
+
+
+def test_a_killed_run_leaves_nothing_that_the_next_run_keeps(tmp_path, capsys, previous_run):
+    """SIGKILL cannot be caught: the temporary folder stays until the next run into the same --out removes it (its
+    name holds the dead run's process id); a live run's folder is left alone."""
+    path, out, before = copy_of(previous_run, tmp_path)
+    process = subprocess.Popen([sys.executable, "-m", "lab", "run", str(path), "--out", str(out), "--frames-every", "0.05", "--quiet"],
+                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=REPO_ROOT)
+    try:
+        deadline = time.monotonic() + 120
+        while not list(tmp_path.glob(".out.*/frames/frame_00001.png")):  # stepping has started
+            assert process.poll() is None and time.monotonic() < deadline, "the run ended or never started stepping"
+            time.sleep(0.05)
+    finally:
+        process.kill()
+        process.wait()
+    [stale] = leftovers(out)
+    alive = tmp_path / stale.replace(f"run{process.pid}.", f"run{os.getpid()}.")  # as a run still going would have it
+    alive.mkdir()
+    code, _ = run_cli(capsys, path, "--out", out, "--duration", "0.02")
+    assert code == 0 and leftovers(out) == [alive.name]

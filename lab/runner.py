@@ -1,15 +1,18 @@
 """Headless scene runs: steps with a progress bar, frames, and the output files of DESIGN section 4.
 
 Outputs are complete or absent: a run writes everything into a fresh temporary folder beside the output folder
-(`.<name>.<random>`), then swaps it in (the previous folder renamed aside, the new one renamed into place, the
+(`.<name>.run<pid>.<host>.<random>`), then swaps it in (the previous folder renamed aside, the new one renamed into place, the
 previous one deleted), so an interrupted or failed run leaves the previous complete set or the new complete set,
 never a mix. The output folder is the run's own: it is replaced as a whole, and a folder holding anything a run
-does not write is refused before the run starts (nothing is deleted that a run did not make).
+does not write is refused before the run starts (nothing is deleted that a run did not make). Temporary folders
+that a killed run left (SIGKILL, power loss) are removed by the next run into the same folder: their names hold the
+process id and host of the run that made them, and that process is gone.
 """
 import contextlib
 import errno
 import json
 import os
+import re
 import shutil
 import signal
 import sys
@@ -20,11 +23,13 @@ from pathlib import Path
 from PIL import Image
 from tqdm import tqdm
 
+from lab import interrupts
 from sims.cautery import SubstepLimit
 from sims.config import ConfigError
 from sims.scene import Scene, save_npz_atomic
 
 FINITE_CHECK_EVERY = 50  # steps between NaN/inf checks
+_HOST = re.sub(r"[^A-Za-z0-9-]", "-", os.uname().nodename)[:32]  # in temporary folder names: pids are per host
 OUTPUTS = ("metrics.json", "final.png", "final_normal.png", "final_roughness.png", "state.npz", "frames")  # what a run writes into its folder
 
 
@@ -79,6 +84,31 @@ def _check_output_folder(out: Path) -> None:
                                   "use a new folder, an empty one or a previous run's")
 
 
+def _temporary_folder(out: Path, kind: str = "") -> Path:
+    """A new empty folder beside `out` named `.<out name>.<kind>run<pid>.<host>.<random>` (see _remove_stale_folders)."""
+    return Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.{kind}run{os.getpid()}.{_HOST}."))
+
+
+def _remove_stale_folders(out: Path) -> None:
+    """Delete the temporary folders beside `out` (_temporary_folder) of runs on this host whose process is gone."""
+    pattern = re.compile(rf"\.{re.escape(out.name)}\.(?:old\.)?run(\d+)\.{re.escape(_HOST)}\.[a-z0-9_]{{8}}")
+    for entry in out.parent.iterdir():
+        match = pattern.fullmatch(entry.name)
+        if match and not _alive(int(match[1])) and entry.is_dir() and not entry.is_symlink():
+            shutil.rmtree(entry, ignore_errors=True)
+
+
+def _alive(pid: int) -> bool:
+    """Whether process `pid` exists on this host (one of another user's counts)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OverflowError):  # another user's; a number no process has is never removed either
+        pass
+    return True
+
+
 @contextlib.contextmanager
 def _interrupts_held():
     """Hold Ctrl-C (SIGINT) over the block. One that arrived meanwhile is dropped: the block has finished (and
@@ -97,7 +127,7 @@ def _swap_in(new: Path, out: Path) -> None:
     """Put folder `new` at `out`, Ctrl-C held throughout: the previous `out` is renamed aside (onto an empty folder
     of a unique name), `new` renamed into place (or the previous one back on failure), the previous one deleted."""
     with _interrupts_held():
-        aside = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.old."))
+        aside = _temporary_folder(out, "old.")
         try:
             moved = out.exists()
             if moved:
@@ -127,6 +157,7 @@ def _simulate(scene: Scene, folder: Path, total: int, frame_every: int, progress
     bar = tqdm(total=total, desc=scene.name, unit="step", file=sys.stderr, delay=1.0, disable=not progress, dynamic_ncols=True)
     with bar:
         for index in range(1, total + 1):
+            interrupts.check()  # a Ctrl-C that a library swallowed (the CLI's handler remembers it)
             scene.step()
             bar.update(1)
             if index % FINITE_CHECK_EVERY == 0 or index in (1, total):  # step 1: the check's kernel loads with the rest
@@ -163,9 +194,11 @@ def run(scene: Scene, out_dir, duration_s: float | None = None, frames_every_s: 
     total = int(round(duration / scene.time_step_s))
     frame_every = max(1, int(round(frames_every_s / scene.time_step_s))) if frames_every_s else 0
     had_outputs = out.exists()
-    folder = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}."))
+    _remove_stale_folders(out)
+    folder = _temporary_folder(out)
     try:
         metrics = _simulate(scene, folder, total, frame_every, progress)
+        interrupts.check()
         _swap_in(folder, out)
     except KeyboardInterrupt:
         kept = f"previous outputs in {out} kept" if had_outputs else f"nothing written to {out}"

@@ -12,7 +12,9 @@ it) ticks the session and redraws what changed.
 """
 from __future__ import annotations
 
+import contextlib
 import functools
+import io
 import math
 import sys
 import threading
@@ -30,8 +32,9 @@ from lab.session import MAX_BLEED_POINTS, QUALITY, SPEED_RANGE, TEXTURE_INTERVAL
 from lab.stream import TextureStream
 from sims import params
 from sims.instruments import local_frame
-from sims.scene import Refused, finite_vector
+from sims.scene import Refused, checked_flag, finite_vector
 
+TYPING_QUIET_S = 1.0                # a slider's box is written back only after this long without a change from a browser
 VIEW_INTERVAL_S = 1.0 / 30.0        # tool poses and markers sent at most this often
 MAX_WAIT_S = 0.02                   # the simulation thread looks at the session at least this often
 STATS_INTERVAL_S = 0.5
@@ -116,24 +119,28 @@ class LabApp:
     def __init__(self, scene_path, host: str = "127.0.0.1", port: int = 8080, arch: str = "auto", overrides=(),
                  wait_for_viewer: bool = False, allowed_origins=()):
         """overrides: `dotted.key=value` texts (as `--set`), applied on every rebuild of this scene. wait_for_viewer:
-        the scene waits at t = 0 until the first browser connects. allowed_origins: web origins besides the server's
+        the scene waits at t = 0 until a browser has drawn the whole tissue texture. allowed_origins: web origins besides the server's
         own that may connect (e.g. a reverse proxy's, "https://lab.example.org")."""
         from lab.origin import refuse_foreign_origins
         from lab.viser_threads import make_sends_thread_safe
 
         make_sends_thread_safe()  # the simulation thread sends tiles and poses
-        self.server = viser.ViserServer(host=host, port=port, verbose=False)
+        with contextlib.redirect_stdout(io.StringIO()):  # viser's banner: `serve` prints the URL once the scene is there
+            self.server = viser.ViserServer(host=host, port=port, verbose=False)
         refuse_foreign_origins(self.server, allowed_origins)
         self.simple_lighting = False
         self.lighting_checkbox = None
         self.set_simple_lighting(False)
         self.stats = {"steps_per_s": 0.0, "updates_per_s": 0.0, "bytes_per_s": 0.0}
         self.history: list[tuple] = []
-        self._notifications: list = []
+        self._notifications: dict = {}       # client id -> the build notification it shows
+        self._notification_lock = threading.Lock()
+        self._building: str | None = None    # the scene being built, while a build runs
         self.stop_event = threading.Event()
         self.stream = None
-        self.session = LabSession(scene_path, arch, overrides, wait_for_viewer=wait_for_viewer, on_build=self._on_build)
+        self.session: LabSession | None = None  # a browser may connect while the first scene builds
         self.server.on_client_connect(self._client_connected)
+        self.session = LabSession(scene_path, arch, overrides, wait_for_viewer=wait_for_viewer, on_build=self._on_build)
         self._show_scene()
 
     @property
@@ -141,20 +148,29 @@ class LabApp:
         return self.session.scene
 
     # --- scene lifetime ---------------------------------------------------------------------
-    def _on_build(self, stage: str, name: str, seconds: float) -> None:
-        """A notification in every browser while a scene builds (it takes seconds), and how long it took."""
-        for handle in self._notifications:
-            handle.remove()
-        self._notifications = []
-        for client in self.server.get_clients().values():
-            if stage == "start":
-                self._notifications.append(client.add_notification("Building the scene", f"{name}: meshes, texel maps and kernels...",
-                                                                   loading=True, with_close_button=False))
-            else:
-                notes = "; ".join(self.session.scene.config.get("notes", ())) if self.session.scene is not None else ""
-                self._notifications.append(client.add_notification("Scene ready", f"{name} built in {seconds:.1f} s"
-                                                                   + (f". Note: {notes}" if notes else ""),
-                                                                   auto_close_seconds=12.0 if notes else 4.0))
+    def _on_build(self, stage: str, name: str, seconds: float, notes=()) -> None:
+        """A notification in every browser while a scene builds (it takes seconds), then how long it took and the
+        scene's notes. Runs on the simulation thread, also inside LabSession's constructor (no session yet)."""
+        clients = self.server.get_clients()
+        with self._notification_lock:
+            self._building = name if stage == "start" else None
+            self._notifications = {key: handle for key, handle in self._notifications.items() if key in clients}
+            for client in clients.values():
+                self._notify(client, (name, seconds, notes))
+
+    def _notify(self, client, built: tuple | None = None) -> None:
+        """This client's build notification as the build stands (the notification lock held)."""
+        old = self._notifications.pop(client.client_id, None)
+        if old is not None:
+            old.remove()
+        if self._building is not None:
+            self._notifications[client.client_id] = client.add_notification(
+                "Building the scene", f"{self._building}: meshes, texel maps and kernels...", loading=True, with_close_button=False)
+        elif built is not None:  # (scene name, build seconds, its notes)
+            name, seconds, notes = built
+            note = f". Note: {'; '.join(notes)}" if notes else ""
+            self._notifications[client.client_id] = client.add_notification(
+                "Scene ready", f"{name} built in {seconds:.1f} s{note}", auto_close_seconds=12.0 if notes else 4.0)
 
     def _show_scene(self) -> None:
         """Stream, tools, markers and GUI for the session's scene (after every build)."""
@@ -172,7 +188,8 @@ class LabApp:
         self._shown: dict = {}          # what the view last showed, by key: only changes are sent
         self.tool_views: dict = {}      # tool name -> its handles
         self.point_views: dict = {}     # bleed point name -> (marker gizmo, folder)
-        self.sliders: dict = {}         # parameter key -> slider handle
+        self.sliders: dict = {}         # parameter key (and "speed") -> (slider handle, () -> the value in use)
+        self._typed_at: dict = {}       # slider key -> when a browser last changed it (time.monotonic s)
         self.armed_click = False
         for client in self.server.get_clients().values():
             self._frame_camera(client)
@@ -185,8 +202,13 @@ class LabApp:
         return self.stream.update(rgb, *self.scene.material_maps(), changed=self.scene.take_display_changes())
 
     def _client_connected(self, client) -> None:
+        """A browser joined (a viser thread): during a build it sees the build notification, and the scene once it is
+        built (`_show_scene` frames every browser's camera); the session starts once a browser drew the tissue."""
+        with self._notification_lock:
+            if self._building is not None or self.session is None:
+                self._notify(client)
+                return
         self._frame_camera(client)
-        self.session.viewer_joined()
 
     def _frame_camera(self, client) -> None:
         position, look_at = initial_view(self.scene.surface)
@@ -217,8 +239,9 @@ class LabApp:
         reset.on_click(lambda event: self._act(event, session.reset))
         self.replay_button.on_click(lambda event: self._act(event, session.reset))
         reload.on_click(lambda event: self._act(event, session.back_to_scene_file))
-        speed.on_update(lambda event: self._act(event, lambda: session.set_speed(speed.value), put_back=(speed, lambda: session.speed)))
-        lighting.on_update(lambda event: self._act(event, lambda: self.set_simple_lighting(bool(lighting.value))))
+        speed.on_update(lambda event: self._typed(event, "speed", lambda: session.set_speed(speed.value)))
+        self.sliders["speed"] = (speed, lambda: session.speed)
+        lighting.on_update(lambda event: self._act(event, lambda: self.set_simple_lighting(checked_flag(lighting.value, "simple lighting"))))
         chooser.on_update(lambda event: self._act(event, lambda: self._choose(chooser, session.switch_scene),
                                                   put_back=(chooser, lambda: session.scene_name_of(session.scene_path))))
         quality.on_update(lambda event: self._act(event, lambda: self._choose(quality, session.set_quality),
@@ -276,7 +299,7 @@ class LabApp:
     def _choose(dropdown, choose) -> None:
         """A dropdown value reaches the session only when it is one of the dropdown's options."""
         if dropdown.value not in dropdown.options:
-            raise Refused(f"{dropdown.label}: {dropdown.value!r} is not one of the options")
+            raise Refused(f"{dropdown.label}: {params.quote(dropdown.value)} is not one of the options")
         choose(dropdown.value)
 
     def _slider(self, key: str, label: str, hint_extra: str = ""):
@@ -287,22 +310,20 @@ class LabApp:
         hint = spec.help + ("" if parameter.live else f". {REBUILD_HINT}") + hint_extra
         handle = self.server.gui.add_slider(label, spec.min, spec.max, slider_step(spec), self.session.parameter_value(key), hint=hint)
 
-        def changed(event):
-            value = handle.value
-            if not from_browser(event):
-                return
-            try:
-                used = self.session.set_parameter(key, value)
-            except Refused as exc:  # the value in use is back on the slider before the notice says why
-                handle.value = self.session.parameter_value(key)
-                self.session.notice = f"refused: {exc}"
-                return
-            if used != value:
-                handle.value = used
-
-        handle.on_update(changed)
-        self.sliders[key] = handle
+        handle.on_update(lambda event: self._typed(event, key, lambda: self.session.set_parameter(key, handle.value)))
+        self.sliders[key] = (handle, lambda: self.session.parameter_value(key))
         return handle
+
+    def _typed(self, event, key: str, action) -> None:
+        """A browser changed a slider (GUI thread; its number box sends every keystroke): the change goes to the session
+        at once, the value in use goes back on the slider only once the typing stopped (_sync_sliders)."""
+        if not from_browser(event):
+            return
+        self._typed_at[key] = time.monotonic()
+        try:
+            action()
+        except Refused as exc:
+            self.session.notice = f"refused: {exc}"
 
     def _build_instruments(self) -> None:
         gui, session = self.server.gui, self.session
@@ -326,15 +347,26 @@ class LabApp:
                         self._slider(key, f"{tool.name}: {slider_label(name, parameters[key].spec)}")
                 name = tool.name
                 view["switch"].on_update(lambda event, n=name, h=view["switch"]: self._act(
-                    event, lambda: session.set_energized(n, bool(h.value))))
-                view["rest"].on_update(lambda event, n=name, h=view["rest"]: self._act(event, lambda: session.set_resting(n, bool(h.value))))
-                view["rotate"].on_update(lambda event, n=name: self._act(event, lambda: self._place_gizmo(n)))
+                    event, lambda: session.set_energized(n, h.value)))
+                view["rest"].on_update(lambda event, n=name, h=view["rest"]: self._act(event, lambda: session.set_resting(n, h.value)))
+                view["rotate"].on_update(lambda event, n=name: self._act(event, lambda: self._rotation_toggled(n)))
                 view["release"].on_click(lambda event, n=name: self._act(event, lambda: session.release(n)))
                 self.tool_views[name] = view
                 self._place_gizmo(name)
                 body = instrument_mesh(tool.shape)
                 view["body"] = self.server.scene.add_mesh_simple(f"/tool_bodies/{name}", body.vertices.astype(np.float32),
                                                                  body.faces.astype(np.uint32), color=TOOL_COLOR)
+
+    def _rotation_toggled(self, name: str) -> None:
+        """"allow rotation" ticked or cleared: the gizmo is placed again, with or without its rotation rings."""
+        checkbox = self.tool_views[name]["rotate"]
+        try:
+            checked_flag(checkbox.value, f"{name}: allow rotation")
+        except Refused:
+            checkbox.value = False  # in every browser, with the gizmo as a cleared box has it
+            raise
+        finally:
+            self._place_gizmo(name)
 
     def _place_gizmo(self, name: str) -> None:
         """The tool's gizmo (translation handles; rotation rings too when asked), at the tool's pose."""
@@ -432,9 +464,16 @@ class LabApp:
             self._sync_points()
 
     def _sync_sliders(self) -> None:
-        """Slider values the session changed itself (reset to defaults, a refused change put back)."""
-        for key, handle in self.sliders.items():
-            self._show(("slider", key), self.session.parameter_value(key), lambda value, h=handle: setattr(h, "value", value))
+        """Every slider shows the value in use (in every browser): a value clamped, refused or changed by the session
+        itself (reset to defaults) is put back, once nobody has typed into that slider for TYPING_QUIET_S (a box
+        rewritten between keystrokes garbles what is being typed: "60" became 20)."""
+        now = time.monotonic()
+        for key, (handle, in_use) in list(self.sliders.items()):
+            if now - self._typed_at.get(key, -math.inf) < TYPING_QUIET_S:
+                continue
+            value = in_use()
+            if handle.value != value:
+                handle.value = value
 
     def _sync_points(self) -> None:
         """A red marker with a gizmo and a folder of sliders for every bleed point; gone when the point is."""
@@ -461,7 +500,7 @@ class LabApp:
     def _show_stats(self) -> None:
         scene, session = self.scene, self.session
         metrics = scene.metrics()
-        state = "waiting for the first browser" if session.waiting_for_viewer else ("running" if session.running else "paused")
+        state = "waiting for a browser to draw the tissue" if session.waiting_for_viewer else ("running" if session.running else "paused")
         lines = [
             f"t = {scene.time_s:.2f} s, {state}, arch {scene.arch}",
             f"simulation: {self.stats['steps_per_s']:.0f} steps/s",
@@ -496,7 +535,8 @@ class LabApp:
         self.stats_text.content = "  \n".join(lines)
         for name, view in self.tool_views.items():
             clearance = scene.tool_clearance_mm(name)
-            text = ("no tissue along its axis" if clearance is None else
+            missed = "no tissue below it" if scene.instrument(name).flat else "no tissue along its axis"
+            text = (missed if clearance is None else
                     f"{clearance:.1f} mm above the tissue" if clearance > 0.05 else f"touching the tissue, {-clearance:.2f} mm in")
             self._show(("distance", name), text, lambda text, h=view["distance"]: setattr(h, "content", text))
         self._sync_sliders()
@@ -569,6 +609,8 @@ class LabApp:
                     result = self._stream_look()
                     updates += result["tiles_sent"] > 0  # updates that sent something
                     sent += result["bytes"]
+                if self.session.waiting_for_viewer and self.stream.drawn_whole():  # the clock starts once the
+                    self.session.viewer_joined()  # tissue is on a screen: a slow browser sees the drill from t = 0
                 last_texture = now
             if now - last_stats >= STATS_INTERVAL_S:
                 span = now - last_stats
@@ -585,7 +627,8 @@ class LabApp:
 
 
 def serve(scene_path, host: str, port: int, arch: str, overrides=(), allowed_origins=()) -> None:
-    """Start the lab, say where it is, and block until Ctrl-C. The scene waits at t = 0 for the first browser."""
+    """Start the lab, say where it is (once it serves the scene), and block until Ctrl-C. The scene waits at t = 0 until
+    a browser has drawn the tissue."""
     app = LabApp(scene_path, host, port, arch, overrides=overrides, wait_for_viewer=True, allowed_origins=allowed_origins)
     bound = app.server.get_port()
     if bound != port:
@@ -595,7 +638,7 @@ def serve(scene_path, host: str, port: int, arch: str, overrides=(), allowed_ori
               "remote demo put a reverse proxy with authentication in front of it (see the README)", file=sys.stderr, flush=True)
     shown = f"[{host}]" if ":" in host else host
     print(f"tissue lab: http://{shown}:{bound}  ({Path(scene_path).name}, {app.scene.arch}, built in "
-          f"{app.session.build_seconds[-1][1]:.1f} s); waits at t = 0 for the first browser; Ctrl-C stops", flush=True)
+          f"{app.session.build_seconds[-1][1]:.1f} s); waits at t = 0 until a browser shows it; Ctrl-C stops", flush=True)
     try:
         app.run()  # Taichi stays on the main thread, where the scene was built
     except KeyboardInterrupt:

@@ -26,7 +26,7 @@ from lab.runner import check_scene
 from sims import backend, params
 from sims.config import REPO_ROOT, ConfigError, load_scene_config, parse_override
 from sims.instruments import Instrument, Pose
-from sims.scene import Refused, Scene, checked_number, finite_vector, load_inputs, unit_direction
+from sims.scene import Refused, Scene, checked_flag, checked_number, finite_vector, load_inputs, unit_direction
 
 SCENES_DIR = REPO_ROOT / "scenes"
 REBUILD_DELAY_S = 0.5     # a rebuild waits until its sliders have been still this long (one rebuild per drag)
@@ -44,6 +44,7 @@ QUALITY = {  # name: scene overrides (texture texels; fluid substeps of either b
     "balanced": {"texture_size": 512, "bleeding.substeps": 2, "bleeding.cfl": 0.6},
     "accurate": {"texture_size": 1024, "bleeding.substeps": 4, "bleeding.cfl": 0.3},
 }
+_NO_SWITCH = object()     # no switch is waiting (None asks for the current scene's file)
 SPARE_SUCTION = {"radius_mm": 4.0, "rate_ml_s": 0.2}
 SPARE_SUCKER_SHAPE = {"type": "capsule", "radius_mm": 1.5, "length_mm": 20.0, "width_mm": 1.0, "thickness_mm": 1.0, "file": None, "sdf_resolution": 8}
 
@@ -102,10 +103,11 @@ class LabSession:
         """scene_path: the scene to start with (any file the operator names; a switch later takes only files in
         scenes_dir). overrides: `dotted.key=value` texts (as `--set`), applied on every rebuild of this scene.
         wait_for_viewer: hold the scene at t = 0 until viewer_joined() is called. on_build: called as
-        on_build(stage, scene_name, seconds) with stage "start" (seconds 0) and "done" around every build."""
+        on_build(stage, scene_name, seconds, notes) with stage "start" (seconds 0) and "done" around every build (notes:
+        the built scene's notes, texts)."""
         self.arch = arch
         self.scenes_dir = Path(scenes_dir).resolve()
-        self.on_build = on_build or (lambda stage, name, seconds: None)
+        self.on_build = on_build or (lambda stage, name, seconds, notes=(): None)
         self.running, self.speed, self.single_steps = True, 1.0, 0
         self.waiting_for_viewer = wait_for_viewer
         self.quality = "scene file"
@@ -121,6 +123,7 @@ class LabSession:
         self._lock = threading.Lock()
         self._pending_parameters: dict[str, float] = {}   # latest value per live parameter, applied by tick
         self._pending_placements: dict[str, tuple] = {}   # latest hand placement per tool, applied by tick
+        self._pending_switch = _NO_SWITCH                 # the scene the latest switch asked for, applied by tick
         self.resting: set[str] = set()        # tools that rest on the tissue while placed by hand
         self._rebuild_at: float | None = None
         self._anchor = None                   # (wall s, scene s) that real-time pacing counts from
@@ -201,21 +204,30 @@ class LabSession:
 
     def set_quality(self, name: str) -> None:
         if name not in QUALITY:
-            raise Refused(f"quality {name!r}: expected one of {', '.join(QUALITY)}")
+            raise Refused(f"quality {params.quote(name)}: expected one of {', '.join(QUALITY)}")
         self._queue(lambda: self._apply_quality(name))
 
     def switch_scene(self, name: str) -> None:
         """Another scene of scene_choices() (keeps the quality preset, forgets the changes made to this one)."""
         if not isinstance(name, str) or name not in self.scene_choices():
-            raise Refused(f"scene {name!r}: not one of the scenes offered")
+            raise Refused(f"scene {params.quote(name)}: not one of the scenes offered")
         path = self.scenes_dir / Path(name).name if name.startswith("scenes/") else self.scene_path
         if path.resolve().parent != self.scenes_dir and path.resolve() != self.scene_path.resolve():  # a link out of scenes/
-            raise Refused(f"scene {name!r}: not in {self.scenes_dir}")
-        self._queue(lambda: self._switch(path))
+            raise Refused(f"scene {params.quote(name)}: not in {self.scenes_dir}")
+        self._request_switch(path)
 
     def back_to_scene_file(self) -> None:
         """The scene as its file says: forgets every change but the quality preset (a rebuild)."""
-        self._queue(lambda: self._switch(self.scene_path))
+        self._request_switch(None)
+
+    def _request_switch(self, path: Path | None) -> None:
+        """Queue a switch to path (None: the current scene's file); a burst of switches builds once, the last one
+        asked for (each build takes seconds: queued one by one, 10 switches froze the lab for 21 s)."""
+        with self._lock:
+            fresh = self._pending_switch is _NO_SWITCH
+            self._pending_switch = path
+        if fresh:
+            self._queue(self._apply_switch)
 
     def reset(self) -> None:
         """Back to t = 0 with every value as it is now; every tool back to its script (also "Replay")."""
@@ -251,19 +263,21 @@ class LabSession:
             self._queue(self._apply_placements)
 
     def set_resting(self, tool: str, on: bool) -> None:
-        """Touch-the-tissue mode: a tool placed by hand is lowered along its axis until its tip is REST_DEPTH_MM in the
-        tissue below (and kept there while it is dragged)."""
+        """Touch-the-tissue mode: the tool is taken by hand and lowered at once until it is REST_DEPTH_MM in the tissue
+        below (along its axis to its tip; a flat tool straight down to its blade), and kept there while it is dragged."""
         self._check_tool(tool)
-        if on:
-            self.resting.add(tool)
-        else:
+        if not checked_flag(on, f"{tool}: touch the tissue"):
             self.resting.discard(tool)
+            return
+        self.resting.add(tool)
+        with self._lock:
+            self._pending_placements.setdefault(tool, None)  # None: where the tool is when applied (_apply_placements)
+        self._queue(self._apply_placements)
 
     def set_energized(self, tool: str, on: bool) -> None:
         self._check_tool(tool)
-        if not isinstance(on, (bool, np.bool_)):
-            raise Refused(f"{tool}: energized must be true or false")
-        self._queue(lambda: self.scene.set_energized(tool, bool(on)))
+        on = checked_flag(on, f"{tool}: energized")
+        self._queue(lambda: self.scene.set_energized(tool, on))
 
     def release(self, tool: str | None = None) -> None:
         """Back to the script: one tool, or every tool with None."""
@@ -354,7 +368,7 @@ class LabSession:
     # --- internals (simulation thread) --------------------------------------------------------
     def _check_tool(self, tool: str) -> None:
         if not isinstance(tool, str) or tool not in {item.name for item in self.scene.instruments}:
-            raise Refused(f"no instrument {tool!r} in this scene")
+            raise Refused(f"no instrument {params.quote(tool)} in this scene")
 
     def _apply_parameters(self) -> None:
         """Apply the latest value of each live parameter; one that would take the explicit heat scheme past its
@@ -377,12 +391,18 @@ class LabSession:
     def _apply_placements(self) -> None:
         with self._lock:
             pending, self._pending_placements = self._pending_placements, {}
-        for tool, (position, direction, roll) in pending.items():
+        for tool, placement in pending.items():
             if tool not in {item.name for item in self.scene.instruments}:
                 continue
+            if placement is None:  # set_resting: lowered where it is now, unless switched off since
+                if tool not in self.resting:
+                    continue
+                pose = self.scene.instrument(tool).pose_at(self.scene.time_s)
+                placement = (pose.position_mm, pose.direction, pose.roll_deg)
+            position, direction, roll = placement
             try:
                 if tool in self.resting:
-                    self.scene.rest_on_tissue(tool, position, REST_DEPTH_MM, direction)
+                    self.scene.rest_on_tissue(tool, position, REST_DEPTH_MM, direction, roll)
                 else:
                     self.scene.take_over(tool, position, direction, roll)
             except Refused as exc:  # (checked when queued; a rebuild may have moved the tissue) the others still move
@@ -398,6 +418,12 @@ class LabSession:
             self.overrides.pop(key, None)
         self.overrides.update(QUALITY[name])
         self._rebuild_at = time.monotonic() + REBUILD_DELAY_S
+
+    def _apply_switch(self) -> None:
+        with self._lock:
+            path, self._pending_switch = self._pending_switch, _NO_SWITCH
+        if path is not _NO_SWITCH:
+            self._switch(self.scene_path if path is None else path)
 
     def _switch(self, path: Path) -> None:
         """Another scene: keeps the quality preset, forgets the changes made to this one."""
@@ -452,7 +478,7 @@ class LabSession:
         Every build after the first starts a fresh Taichi runtime: Taichi frees no field of a dropped scene and allows
         512 field trees per runtime (a hemostasis build makes 14), and a fresh runtime builds faster too."""
         name = self.scene_name_of(path)
-        self.on_build("start", name, 0.0)
+        self.on_build("start", name, 0.0, ())
         started = time.perf_counter()
         try:
             config = load_scene_config(path, override_texts(fitting_overrides(path, self.overrides)))
@@ -463,7 +489,7 @@ class LabSession:
             good_path, good_overrides, _, _ = self._good
             self.overrides = dict(good_overrides)
             self.notice = f"not {'rebuilt' if path == good_path else 'switched'}: {exc}"
-            self.on_build("done", self.scene.name, time.perf_counter() - started)
+            self.on_build("done", self.scene.name, time.perf_counter() - started, ())
             return
         notice = ""
         if not first:  # the old scene stays readable (config, surface: NumPy) for callers on other threads, but
@@ -493,4 +519,4 @@ class LabSession:
         self._anchor = None
         seconds = time.perf_counter() - started
         self.build_seconds.append((scene.name, seconds))
-        self.on_build("done", scene.name, seconds)
+        self.on_build("done", scene.name, seconds, tuple(scene.config.get("notes", ())))

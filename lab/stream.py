@@ -553,6 +553,16 @@ class TextureStream:
         browser's confirmation."""
         return sum(len(viewer.retiring) for viewer in list(self._viewers.values()))
 
+    def drawn_whole(self) -> bool:
+        """Whether some browser has drawn the whole texture: a node of every tile, each confirmed drawn (its ClientSync
+        confirmation; sent is enough without wait_for_clients)."""
+        with self._lock:
+            for client_id, viewer in self._viewers.items():
+                drawn = self.sync.confirmed_by(client_id) if self.sync is not None else float("inf")
+                if all(node is not None and node.mark <= drawn for node in viewer.nodes):
+                    return True
+        return False
+
     def client_stats(self, client_id: int) -> dict:
         """One browser's share: {"nodes", "pending_removals", "tiles_sent" (tile nodes sent to it), "tiles_behind"
         (summed over updates: tiles it lacked the newest version of after the update), "removed",

@@ -49,10 +49,10 @@ def finite_vector(value, length: int = 3, name: str = "value") -> np.ndarray:
     """value as a float64 vector of `length` finite numbers, or Refused."""
     try:
         vector = np.asarray(value, np.float64).reshape(-1)
-    except (TypeError, ValueError):
-        raise Refused(f"{name}: expected {length} numbers, got {value!r}") from None
+    except (TypeError, ValueError, OverflowError):
+        raise Refused(f"{name}: expected {length} numbers, got {params.quote(value)}") from None
     if vector.shape != (length,) or not np.isfinite(vector).all():
-        raise Refused(f"{name}: expected {length} finite numbers, got {value!r}")
+        raise Refused(f"{name}: expected {length} finite numbers, got {params.quote(value)}")
     return vector
 
 
@@ -61,15 +61,25 @@ def unit_direction(value, name: str = "direction") -> np.ndarray:
     vector = finite_vector(value, 3, name)
     length = float(np.linalg.norm(vector))
     if not length > 1e-9 or not math.isfinite(length):
-        raise Refused(f"{name}: must be a finite, non-zero vector, got {value!r}")
+        raise Refused(f"{name}: must be a finite, non-zero vector, got {params.quote(value)}")
     return vector / length
+
+
+def checked_flag(value, name: str) -> bool:
+    """value if it is true or false (a checkbox's value), or Refused (bool() would take any text or dict as true)."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise Refused(f"{name}: must be true or false, got {params.quote(value)}")
+    return bool(value)
 
 
 def checked_number(spec: params.ParamSpec, value, clamp: bool = False) -> float | int:
     """value if the spec accepts it (clamped into its range with clamp=True; rounded for whole numbers), or Refused."""
     if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
-        raise Refused(f"{spec.name}: expected a number ({spec.unit}), got {value!r}")
-    value = float(value)
+        raise Refused(f"{spec.name}: expected a number ({spec.unit}), got {params.quote(value)}")
+    try:
+        value = float(value)
+    except OverflowError:  # an int beyond float's range (a 5,000-digit number from a browser)
+        raise Refused(f"{spec.name}: must be finite, got {params.quote(value)}") from None
     if not math.isfinite(value):
         raise Refused(f"{spec.name}: must be finite, got {value}")
     if clamp:
@@ -393,7 +403,7 @@ class Scene:
         for tool in self.instruments:
             if tool.name == name:
                 return tool
-        raise Refused(f"no instrument {name!r} in this scene")
+        raise Refused(f"no instrument {params.quote(name)} in this scene")
 
     def add_instrument(self, tool) -> None:
         """A suction tool added at run time (heating tools are compiled into the heat model and need a rebuild)."""
@@ -425,8 +435,7 @@ class Scene:
 
     def set_energized(self, name: str, on: bool) -> None:
         """A hand switches the tool on or off (until release())."""
-        if not isinstance(on, (bool, np.bool_)):
-            raise Refused(f"{name}: energized must be true or false, got {on!r}")
+        on = checked_flag(on, f"{name}: energized")
         self.instrument(name).energized_by_hand = bool(on)
 
     def release(self, name: str | None = None) -> None:
@@ -516,7 +525,7 @@ class Scene:
         for point in self.bleed_points:
             if point.name == name:
                 return point
-        raise Refused(f"no bleed point {name!r} in this scene")
+        raise Refused(f"no bleed point {params.quote(name)} in this scene")
 
     def _file_index(self, point) -> int | None:
         """The point's index in the scene file's bleed_points, or None for a point added at run time."""
@@ -588,7 +597,7 @@ class Scene:
         if self.bleeding is None:
             raise Refused("this scene has no bleeding model")
         if any(point.name == name for point in self.bleed_points):
-            raise Refused(f"there is a bleed point {name!r} already")
+            raise Refused(f"there is a bleed point {params.quote(name)} already")
         position = self.checked_position(position_mm, f"{name}: position_mm")
         rate = checked_number(params.BLEED_POINT["rate_ml_s"], rate_ml_s)
         radius = checked_number(params.BLEED_POINT["radius_mm"], radius_mm)

@@ -162,7 +162,8 @@ def test_nan_inf_and_text_on_sliders_are_refused_and_the_lab_goes_on(lab, hostil
     keeps_stepping(lab)
     assert lab.scene.config["tissue"]["conductivity_w_mk"] == conductivity
     assert lab.scene.instrument(BALL).base.tip_temperature_c == tip and math.isfinite(lab.session.speed)
-    assert math.isfinite(lab.sliders["tissue.conductivity_w_mk"].value), "the refused value was not put back"
+    handle = lab.sliders["tissue.conductivity_w_mk"][0]
+    run(lab, lambda: math.isfinite(handle.value))  # the refused value is put back (once the slider is quiet)
 
 
 def test_unknown_quality_is_refused_and_switches_still_work(lab, hostile):
@@ -277,6 +278,32 @@ def test_values_outside_a_range_cannot_be_entered(lab, chrome, page):
 
     shown = in_browser(lab, chrome, typed_and_put_back, until=clamped)
     assert float(shown) == 5.0, f"the browser still shows {shown}"
+
+
+@needs_chromium
+def test_a_value_typed_key_by_key_is_kept_and_the_box_shows_the_value_in_use(lab, chrome, page):
+    """The number box sends every keystroke: "60" arrives as 6 (clamped to 20), then 60. The box keeps what is typed and
+    shows the value in use once the typing stopped (a value out of range as the clamped one)."""
+    from lab.app import TYPING_QUIET_S
+
+    key, label = f"instruments.{BALL}.tip_temperature_c", f"{BALL}: tip_temperature_c (C)"
+    for typed, used in ((60, 60.0), (120, 120.0), (500, 400.0)):
+        def type_keys(_):
+            if not page.page.get_by_text(label, exact=True).is_visible():
+                page.page.get_by_text(BALL, exact=True).click()
+            box = slider_input(page.page, label)
+            box.click()
+            box.press("Control+a")
+            box.press_sequentially(str(typed), delay=100)
+            box.press("Enter")
+
+        def settled():  # the lab uses the value and has had its chance to write the box back
+            return (lab.scene.instrument(BALL).base.tip_temperature_c == used and lab.sliders[key][0].value == used
+                    and time.monotonic() - lab._typed_at[key] > 2 * TYPING_QUIET_S)
+
+        in_browser(lab, chrome, type_keys, until=settled)
+        shown = in_browser(lab, chrome, lambda _: slider_input(page.page, label).input_value())
+        assert float(shown) == used, f"typed {typed}: the box shows {shown}, the lab uses {used}"
 
 
 @needs_chromium

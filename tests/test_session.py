@@ -131,6 +131,25 @@ def test_a_tool_resting_on_the_tissue_keeps_its_contact_depth_while_dragged(sess
     session.release(BALL)
 
 
+def test_ticking_touch_the_tissue_lowers_the_tool_at_once(session):
+    """No drag needed: the next tick rests the tool where it is, its tip REST_DEPTH_MM in; switched on and off before a
+    tick, the tool stays with its script."""
+    restart(session)
+    session.set_resting(BALL, True)
+    session.set_resting(BALL, False)
+    session.tick()
+    assert session.scene.held_tools() == []
+    above = session.scene.instrument(BALL).pose_at(session.scene.time_s).position_mm
+    assert session.scene.tool_clearance_mm(BALL) > 1.0, "the drill starts with the electrode above the tissue"
+    session.set_resting(BALL, True)
+    session.tick()
+    assert session.scene.tool_clearance_mm(BALL) == pytest.approx(-REST_DEPTH_MM, abs=0.02)
+    position = session.scene.instrument(BALL).pose_at(session.scene.time_s).position_mm
+    assert position[:2] == pytest.approx(above[:2], abs=0.05) and position[2] < above[2] - 1.0
+    session.set_resting(BALL, False)
+    session.release(BALL)
+
+
 # --- values from outside ---------------------------------------------------------------------------
 
 def test_values_that_are_not_finite_numbers_are_refused_and_the_simulation_goes_on(session):

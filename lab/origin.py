@@ -18,6 +18,12 @@ GUI never leave the server. Messages the page pipelined behind the handshake can
 the socket after the close, so the server's message dispatch (`WebsockServer._handle_incoming_message`)
 passes on only messages of connections that passed the check, and a refused connection's own
 dispatch (its camera handler: the client would count as connected) drops everything.
+
+A foreign page could also show the lab inside a frame of its own and trick the user into clicking it: every HTTP
+response says that only the lab's own pages may frame it (FRAME_HEADERS). viser keeps its websockets Server only in
+a local (`serve_future`) of its `start_server` coroutine, found among the event loop's tasks; it gets a
+`process_response` hook. The guard installs lab.client_guard too (`OriginGuard.messages`): what a connection that
+passed may send.
 """
 from __future__ import annotations
 
@@ -28,6 +34,7 @@ from typing import Iterable
 _POLICY_VIOLATION = 1008  # websocket close code
 _WILDCARD_HOSTS = {"", "0.0.0.0", "::", "[::]"}
 _LOOPBACK_HOSTS = ("127.0.0.1", "localhost", "[::1]")
+FRAME_HEADERS = {"X-Frame-Options": "SAMEORIGIN", "Content-Security-Policy": "frame-ancestors 'self'"}
 
 
 def own_origins(host: str, port: int, allowed: Iterable[str] = ()) -> set[str]:
@@ -51,6 +58,8 @@ class OriginGuard:
 
     def __init__(self, server, allowed: Iterable[str] = ()):
         """server: a started viser.ViserServer (1.1.1). allowed: more origins to let in, e.g. a reverse proxy's."""
+        from lab.client_guard import guard_client_messages
+
         websock = getattr(server, "_websock_server", None)
         live = getattr(websock, "_live_connections", None)
         if not isinstance(live, dict) or not callable(getattr(websock, "_handle_incoming_message", None)) \
@@ -78,6 +87,8 @@ class OriginGuard:
                 asyncio.run_coroutine_threadsafe(raw.close(_POLICY_VIOLATION, "origin not allowed"),
                                                  websock._background_event_loop)
         websock._handle_incoming_message = dispatch_if_accepted
+        _forbid_framing(websock)
+        self.messages = guard_client_messages(server)  # what an accepted connection may send
 
     def allows(self, origin: str | None, local_ip: str | None = None) -> bool:
         """True for no Origin, one of `origins`, or the address the connection came in on (a page loaded from
@@ -113,6 +124,29 @@ class OriginGuard:
 
     def _forget(self, conn) -> None:
         self._accepted.discard(conn.client_id)
+
+
+def _forbid_framing(websock) -> None:
+    """Every HTTP response of this viser WebsockServer carries FRAME_HEADERS (see the module docstring)."""
+
+    async def find_server():
+        for task in asyncio.all_tasks():
+            coro = task.get_coro()
+            if getattr(coro, "__name__", "") == "start_server" and getattr(coro, "cr_frame", None) is not None:
+                return coro.cr_frame.f_locals.get("serve_future")
+        return None
+
+    http = asyncio.run_coroutine_threadsafe(find_server(), websock._background_event_loop).result(timeout=30)
+    if http is None or getattr(http, "process_response", False) is not None:
+        raise RuntimeError("lab.origin: viser's start_server task holds no websockets Server without process_response; "
+                           "the framing headers cannot be added")
+    http.process_response = _add_frame_headers
+
+
+def _add_frame_headers(connection, request, response) -> None:
+    """websockets process_response hook: the response as it is, plus FRAME_HEADERS."""
+    for name, value in FRAME_HEADERS.items():
+        response.headers[name] = value
 
 
 async def _drop(client_id, message) -> None:

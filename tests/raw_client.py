@@ -63,7 +63,8 @@ class RawClient:
     Keeps what it learned: `gui` (label -> the element's add message: uuid, type, value, props with
     min/max/options...), `nodes` (scene node name -> its add message), `counts` (messages received
     per type), `glbs` ((monotonic s, node name, GLB bytes) of every GLB node added), and
-    `requests_seen` / `requests_answered` (localStorage reads)."""
+    `requests_seen` / `requests_answered` (localStorage reads), `positions` (node name -> every position the server
+    set, SetPositionMessage, in order)."""
 
     def __init__(self, port: int, origin: str | None = None, answer_requests: bool = True, timeout_s: float = 30.0,
                  host: str = "127.0.0.1", send_camera: bool = True, max_queue: int | None = None, strict: bool = False):
@@ -81,6 +82,7 @@ class RawClient:
         self.nodes: dict[str, dict] = {}
         self.counts: collections.Counter = collections.Counter()
         self.glbs: list[tuple[float, str, bytes]] = []
+        self.positions: collections.defaultdict = collections.defaultdict(list)
         self.requests_seen = self.requests_answered = 0
         self.close_code: int | None = None
         self._changed = threading.Condition()
@@ -107,6 +109,15 @@ class RawClient:
         except websockets.exceptions.ConnectionClosed as exc:
             if self.strict:
                 raise ConnectionError(f"the server closed this client's connection: {exc}") from None
+            return False
+
+    def send_frame(self, data: bytes | str) -> bool:
+        """Send one websocket frame as it is (str: a text frame), however malformed. False if the connection is closed."""
+        try:
+            with self._send_lock:
+                self._ws.send(data)
+            return True
+        except websockets.exceptions.ConnectionClosed:
             return False
 
     def send_camera(self, position=(0.0, -100.0, 100.0), look_at=(0.0, 0.0, 0.0)) -> bool:
@@ -216,6 +227,8 @@ class RawClient:
                         known["props"] = {**known["props"], **message.get("updates", {})}
             elif kind == "GuiRemoveMessage":
                 self.gui = {label: m for label, m in self.gui.items() if m["uuid"] != message["uuid"]}
+            elif kind == "SetPositionMessage":
+                self.positions[message["name"]].append(tuple(message["position"]))
             elif kind == "RemoveSceneNodeMessage":
                 self.nodes.pop(message["name"], None)
             elif "name" in message and isinstance(props, dict):

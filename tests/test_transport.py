@@ -1,6 +1,7 @@
 """What reaches the lab over viser's websocket from clients that behave as any web page can (tests.raw_client):
-values are not checked by viser, a foreign web page is refused (lab.origin), and a client that never answers or stops
-reading slows only itself (lab.stream, lab.client_sync)."""
+values are not checked by viser, a foreign web page is refused (lab.origin), a client may send only what the viser
+client's widgets send (lab.client_guard), and a client that never answers or stops reading slows only itself
+(lab.stream, lab.client_sync)."""
 from __future__ import annotations
 
 import math
@@ -8,6 +9,7 @@ import threading
 import time
 from types import SimpleNamespace
 
+import msgspec.msgpack
 import numpy as np
 import pytest
 
@@ -237,3 +239,139 @@ def test_a_new_client_gets_every_tile_and_one_that_leaves_takes_its_nodes(server
     finally:
         stream.close()
         first.close()
+
+
+# --- what a client may send: only what the viser client's widgets send (lab.client_guard) ------------------------
+
+def _messages_guard(server):
+    """The lab.client_guard.ClientGuard of this server (lab.origin installs it)."""
+    from lab import client_guard
+
+    return next(guard for guard in list(client_guard._GUARDS) if guard.port == server.get_port())
+
+
+def test_malformed_frames_close_their_connection_quietly_and_are_counted(server, caplog):
+    """Each used to end in a traceback of 11 lines or more (viser's handler raised, websockets logged it), without
+    limit; a type the client sends but the lab does not use is dropped and the connection kept."""
+    import socket
+
+    from lab.origin import refuse_foreign_origins
+
+    guard = refuse_foreign_origins(server).messages
+    frames = [b"\xc1", "a text frame", b"\x91" * 100_000 + b"\xc0", msgspec.msgpack.encode({"type": "NoSuchMessage"}),
+              msgspec.msgpack.encode({"type": "GuiRemoveMessage", "uuid": "x"}), msgspec.msgpack.encode({"uuid": "no type"})]
+    for frame in frames:
+        client = RawClient(server.get_port(), send_camera=False)
+        client.send_frame(frame)
+        _wait(lambda: not client.connected, what=f"the connection closing after {frame[:20]!r}")
+        assert client.close_code == 1003
+    for data in (b"", b"GARBAGE\r\n\r\n"):  # a bare TCP connect and close; then a request that is not HTTP
+        with socket.create_connection(("127.0.0.1", server.get_port())) as sock:
+            sock.sendall(data)
+    kept, _ = _connect(server)
+    kept.send({"type": "ShareUrlRequest"})  # would have the server open a public share tunnel to the lab
+    kept.send({"type": "GuiButtonHoldMessage", "uuid": "x", "frequency": 1.0})
+    _wait(lambda: guard.dropped["failed handshake"] >= 2 and guard.dropped["GuiButtonHoldMessage"] == 1,
+          what="the refused handshakes and messages being counted")
+    assert guard.dropped["malformed"] == len(frames) and guard.dropped["ShareUrlRequest"] == 1 and kept.connected
+    assert not [record.getMessage() for record in caplog.records if record.exc_info], "a traceback was logged"
+    kept.close()
+
+
+def test_the_page_forbids_framing_by_other_sites(server):
+    import urllib.request
+
+    from lab.origin import refuse_foreign_origins
+
+    refuse_foreign_origins(server)
+    with urllib.request.urlopen(f"http://127.0.0.1:{server.get_port()}/") as response:
+        assert response.status == 200 and response.headers["X-Frame-Options"] == "SAMEORIGIN"
+        assert response.headers["Content-Security-Policy"] == "frame-ancestors 'self'"
+
+
+@pytest.fixture(scope="module")
+def lab():
+    """A LabApp on the hemostasis scene at 128² texels; its loop runs on this thread only inside `_run`."""
+    from lab.app import LabApp
+    from sims.config import REPO_ROOT
+
+    app = LabApp(REPO_ROOT / "scenes" / "hemostasis.yaml", "127.0.0.1", browser.free_port(), "cpu", overrides=("texture_size=128",))
+    yield app
+    app.close()
+
+
+def _run(lab, until, what: str, timeout_s: float = 90.0) -> None:
+    """The lab's simulation loop on this thread until until() holds."""
+    assert lab.run(until=until, timeout_s=timeout_s), f"{what} did not happen in {timeout_s} s (notice: {lab.session.notice!r})"
+
+
+def _steps_on(lab, what: str) -> None:
+    start = lab.scene.steps
+    _run(lab, lambda: lab.scene.steps >= start + 10, what)
+    assert not lab.session.notice.startswith("simulation stopped"), lab.session.notice
+
+
+def test_a_client_writing_handle_internals_breaks_nothing_for_the_others(lab):
+    """viser assigned every key of a GUI update to the server's handle: {gui_api: 0} on "Simple lighting" then a
+    rebuild ended the process; {gui_api: 0} on a slider stopped the simulation for everyone at the next reset to
+    defaults; {update_cb: []} disabled Reset and {sync_cb: 0} broke Speed for every browser."""
+    port = lab.server.get_port()
+    hostile, other = RawClient(port, strict=True), RawClient(port, strict=True)
+    guard = _messages_guard(lab.server)
+    conductivity = "conductivity_w_mk (W/(m K))"
+    _run(lab, lambda: len(lab.server.get_clients()) >= 2 and conductivity in hostile.gui and conductivity in other.gui,
+         "both clients connecting")
+    default = lab.session.parameter_value("tissue.conductivity_w_mk")
+    other.set_gui_value(conductivity, 1.5)
+    _run(lab, lambda: lab.session.parameter_value("tissue.conductivity_w_mk") == 1.5, "the other's conductivity arriving")
+    before = sum(guard.dropped.values())
+    for label, updates in (("Simple lighting", {"gui_api": 0}), (conductivity, {"gui_api": 0}), ("Reset", {"update_cb": []}),
+                           ("Speed (x real time)", {"sync_cb": 0}), ("Speed (x real time)", {"value": 2.0, "sync_cb": 0})):
+        hostile.send({"type": "GuiUpdateMessage", "uuid": hostile.wait_for_gui(label)["uuid"], "updates": updates})
+    _run(lab, lambda: sum(guard.dropped.values()) >= before + 5, "the five updates being dropped")
+    assert lab.session.speed == 1.0
+    other.click_button("Reset tissue to defaults")
+    _run(lab, lambda: lab.session.parameter_value("tissue.conductivity_w_mk") == default, "the reset to defaults")
+    _steps_on(lab, "stepping after the reset to defaults")
+    lab.session.notice = ""
+    time_s = lab.scene.time_s
+    other.click_button("Reset")
+    _run(lab, lambda: lab.scene.time_s < time_s, "the other's Reset")
+    other.set_gui_value("Speed (x real time)", 2.0)
+    hostile.wait_for(lambda: hostile.gui["Speed (x real time)"]["props"].get("value") == 2.0)  # relayed to the others
+    assert lab.session.speed == 2.0
+    builds = lab.session.builds
+    other.set_gui_value("Quality", "fast")
+    _run(lab, lambda: lab.session.builds > builds and lab.shown_builds == lab.session.builds, "the rebuild", timeout_s=180)
+    _steps_on(lab, "stepping after the rebuild")
+    hostile.close()
+    other.close()
+
+
+def test_a_refused_gizmo_pose_reaches_no_other_browser_and_goes_back_everywhere(lab):
+    """viser relayed a client's gizmo pose to the other browsers before the lab looked at it; a bleed-point marker
+    was not put back either: after position (NaN, 0, 0) on /bleed/vessel it vanished in the other browsers while the
+    vessel kept bleeding."""
+    port = lab.server.get_port()
+    hostile, other = RawClient(port, strict=True), RawClient(port, strict=True)
+    _run(lab, lambda: len(lab.server.get_clients()) >= 2 and "/bleed/vessel" in hostile.nodes and "/bleed/vessel" in other.nodes,
+         "both clients seeing the marker")
+    guard = _messages_guard(lab.server)
+    where = tuple(float(v) for v in lab.scene.bleed_point("vessel").position_at(lab.scene.time_s))
+    refused = [("/bleed/vessel", (1.0, 0.0, 0.0, 0.0), (math.nan, 0.0, 0.0)), ("/bleed/vessel", (0.0, 0.0, 0.0, 0.0), (0.0, 0.0, 1e308)),
+               ("/bleed/vessel", (1.0, 0.0, 0.0, 0.0), (900.0, 0.0, 0.0)),  # finite, but far outside the tissue: the lab refuses it
+               ("/tools/ball_electrode", (1.0, 0.0, 0.0, 0.0), (-math.inf, 0.0, 0.0))]
+    for name, wxyz, position in refused:
+        seen = len(hostile.positions[name])
+        lab.session.notice = ""
+        hostile.move_transform(name, wxyz, position)
+        _run(lab, lambda: "refused" in lab.session.notice and len(hostile.positions[name]) > seen, f"{position} put back")
+        back = hostile.positions[name][-1]
+        assert all(map(math.isfinite, back)), back
+        other.wait_for(lambda: other.positions[name] and other.positions[name][-1] == back)
+    assert other.positions["/bleed/vessel"][-1] == hostile.positions["/bleed/vessel"][-1] == pytest.approx(where)
+    assert all(all(map(math.isfinite, position)) and max(map(abs, position)) < 1e6
+               for positions in other.positions.values() for position in positions), "a refused pose was relayed"
+    assert guard.dropped["pose not relayed"] >= 3
+    hostile.close()
+    other.close()

@@ -127,7 +127,8 @@ class LabApp:
         make_sends_thread_safe()  # the simulation thread sends tiles and poses
         with contextlib.redirect_stdout(io.StringIO()):  # viser's banner: `serve` prints the URL once the scene is there
             self.server = viser.ViserServer(host=host, port=port, verbose=False)
-        refuse_foreign_origins(self.server, allowed_origins)
+        self.guard = refuse_foreign_origins(self.server, allowed_origins)  # its .messages counts what clients sent
+        # that no widget of theirs sends (dropped before viser applies it)
         self.simple_lighting = False
         self.lighting_checkbox = None
         self.set_simple_lighting(False)
@@ -490,12 +491,20 @@ class LabApp:
             if name not in self.point_views:
                 marker = self.server.scene.add_transform_controls(f"/bleed/{name}", scale=5.0, position=position, disable_rotations=True)
                 self.server.scene.add_icosphere(f"/bleed/{name}/dot", radius=0.8, color=(150, 0, 0))
-                marker.on_update(lambda event, n=name, m=marker: self._act(event, lambda: self.session.move_bleed_point(n, m.position)))
+                marker.on_update(lambda event, n=name, m=marker: self._act(event, lambda: self._marker_moved(n, m)))
                 with self.bleed_folder, self.server.gui.add_folder(name) as folder:
                     for key in [key for key in parameters if key.startswith(f"bleed_points.{name}.")]:
                         self._slider(key, f"{name}: {slider_label(key.rpartition('.')[2], parameters[key].spec)}")
                 self.point_views[name] = (marker, folder)
             self._show(("point", name), position, lambda position, m=self.point_views[name][0]: setattr(m, "position", position))
+
+    def _marker_moved(self, name: str, marker) -> None:
+        """A hand moved a bleed point's marker: the point moves there, or the marker goes back to it in every browser."""
+        try:
+            self.session.move_bleed_point(name, marker.position)
+        except Refused:
+            marker.position = tuple(float(v) for v in self.scene.bleed_point(name).position_at(self.scene.time_s))
+            raise
 
     def _show_stats(self) -> None:
         scene, session = self.scene, self.session
@@ -532,6 +541,10 @@ class LabApp:
             lines.append("**restarting the scene with the new value...**")
         if session.notice:
             lines.append(f"**{session.notice}**")
+        dropped = self.guard.messages.dropped
+        if dropped:
+            kinds = ", ".join(f"{kind} {count}" for kind, count in dropped.most_common(3))
+            lines.append(f"client messages refused: {sum(dropped.values())} ({kinds})")
         self.stats_text.content = "  \n".join(lines)
         for name, view in self.tool_views.items():
             clearance = scene.tool_clearance_mm(name)
@@ -570,9 +583,13 @@ class LabApp:
                 raise exc.__cause__ from None
             except Exception as exc:  # keep serving the browsers; the user can reset or switch scenes
                 traceback.print_exc()
-                self.set_running(False)
+                self.session.set_running(False)
                 self.session.notice = f"simulation stopped: {type(exc).__name__}: {exc} (press Resume or Reset)"
-                self.stats_text.content = self.session.notice
+                try:  # the view may be what failed (a handle removed mid-rebuild): the next _show_scene makes new ones
+                    self.pause_button.label = "Resume"
+                    self.stats_text.content = self.session.notice
+                except Exception:
+                    pass
                 time.sleep(0.5)
         return False
 

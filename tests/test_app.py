@@ -166,6 +166,34 @@ def test_nan_inf_and_text_on_sliders_are_refused_and_the_lab_goes_on(lab, hostil
     run(lab, lambda: math.isfinite(handle.value))  # the refused value is put back (once the slider is quiet)
 
 
+def test_bad_values_on_rebuild_sliders_are_refused_and_clamped_values_are_put_back_in_every_browser(lab, hostile):
+    """NaN, 1e308, a 4,000-digit integer and values of the wrong type on the sliders that rebuild the scene: refused or
+    clamped, the lab goes on stepping without a rebuild it was not asked for; a clamped speed is shown as the speed in
+    use in every browser, and a 4 MB value is quoted in a few dozen characters."""
+    other = RawClient(lab.server.get_port(), strict=True)
+    try:
+        builds = lab.session.builds
+        for label in ("texture_size (texels)", "heat_grid_divisor", "layers"):
+            full = next(name for name in hostile.gui if name.startswith(label))
+            in_use = lab.sliders[next(key for key in lab.sliders if key.endswith(label.partition(" ")[0]))][1]()
+            for value in (float("nan"), 1e308, "9" * 4000, {"a": 1}, [1, 2], "512", None, in_use):  # (viser casts text
+                hostile.set_gui_value(full, value)  # to the slider's type); the value in use last: one cheap rebuild
+        keeps_stepping(lab)
+        run(lab, lambda: not lab.session.rebuild_pending)
+        assert lab.session.broken is None and lab.session.running
+        assert lab.session.builds <= builds + 1, "values refused or clamped rebuilt more than once"
+        run(lab, lambda: all(math.isfinite(handle.value) for handle, _ in lab.sliders.values()))
+        hostile.set_gui_value("Speed (x real time)", 1e9)
+        run(lab, lambda: lab.session.speed == 4.0 and other.gui["Speed (x real time)"]["props"].get("value") == 4.0)
+        hostile.set_gui_value("Quality", "x" * 4_000_000)
+        run(lab, lambda: "not one of the options" in lab.session.notice)
+        assert len(lab.session.notice) < 200 and lab.quality_dropdown.value == lab.session.quality
+        keeps_stepping(lab)
+    finally:
+        other.close()
+        lab.session.set_speed(1.0)
+
+
 def test_unknown_quality_is_refused_and_switches_still_work(lab, hostile):
     builds = lab.session.builds
     hostile.set_gui_value("Quality", "ultra")

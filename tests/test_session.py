@@ -15,6 +15,7 @@ import yaml
 
 from lab.session import MAX_BLEED_POINTS, MAX_PENDING, REST_DEPTH_MM, LabSession
 from sims.config import REPO_ROOT
+from sims.params import quote
 from sims.scene import Refused
 
 HEMOSTASIS = REPO_ROOT / "scenes" / "hemostasis.yaml"
@@ -230,7 +231,7 @@ def test_no_file_outside_the_scenes_folder_is_opened_for_a_scene_switch(session,
     for name in outside:
         with pytest.raises(Refused) as caught:
             session.switch_scene(name)
-        messages.add(str(caught.value).replace(repr(name), "NAME"))
+        messages.add(str(caught.value).replace(quote(name), "NAME"))  # (quoted in 40 characters at most)
     watched = list(opened)
     assert not [path for path in watched if "etc" in path or "dev/zero" in path or str(tmp_path) in path or path.endswith(".toml")], watched
     assert len(messages) == 1, f"the answers tell files apart: {messages}"  # existing and missing files alike

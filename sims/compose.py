@@ -254,7 +254,7 @@ class Composer:
                 color, surface = self.textures[0, r, c], self.surfaces[0, r, c]
                 omega, char, temperature, depth = 0.0, 0.0, 0.0, 0.0
                 if ti.static(self.reads_omega):
-                    omega = heat.sample(heat.cautery.omega, r, c)
+                    omega = heat.omega(r, c)  # read through its log: the edge where the heat grid puts it
                 if ti.static(self.reads[FIELD_CODES["char"]]):
                     char = heat.sample(heat.cautery.char, r, c)
                 if ti.static(self.reads[FIELD_CODES["temperature_c"]]):

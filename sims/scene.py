@@ -702,7 +702,7 @@ class Scene:
     def metrics(self) -> dict:
         result = {"scene": self.name, "duration_s": self.time_s, "steps": self.steps, "models": self.models, "arch": self.arch}
         if self.cautery is not None:
-            result["cautery"] = {**self.cautery.metrics(), "heat_scheme": self.cautery.scheme,
+            result["cautery"] = {**self.heat_display.metrics(), "heat_scheme": self.cautery.scheme,
                                  "heat_substeps_per_step": self.cautery.substeps(self.time_step_s),
                                  "heat_solver_iterations_last_step": self.cautery.last_iterations}
         if self.bleeding is not None:

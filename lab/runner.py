@@ -18,6 +18,7 @@ import signal
 import sys
 import tempfile
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from PIL import Image
@@ -172,12 +173,17 @@ def _simulate(scene: Scene, folder: Path, total: int, frame_every: int, progress
     wall = time.perf_counter() - start
     metrics = scene.metrics()
     metrics.update(wall_s=wall, finite=True, first_step_s=first_step, steps_per_s=_steps_per_s(total - 1, wall - (first_step or 0.0)))
-    write_png(folder / "final.png", scene.composite())
-    normal, roughness = scene.material_maps()
-    write_png(folder / "final_normal.png", normal)
-    write_png(folder / "final_roughness.png", roughness)
-    save_npz_atomic(folder / "state.npz", scene.state_arrays())
-    (folder / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
+    # PNG and zip compression release the GIL: the files compress side by side and while the next arrays are read
+    # (0.7 s of compression one after the other for a 512² texture; the bytes are the same)
+    with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
+        writes = [pool.submit(write_png, folder / "final.png", scene.composite())]
+        normal, roughness = scene.material_maps()
+        writes += [pool.submit(write_png, folder / "final_normal.png", normal),
+                   pool.submit(write_png, folder / "final_roughness.png", roughness),
+                   pool.submit(save_npz_atomic, folder / "state.npz", scene.state_arrays())]
+        (folder / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
+        for write in writes:
+            write.result()  # a failed write raises its error (OSError) here
     return metrics
 
 

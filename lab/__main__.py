@@ -136,7 +136,24 @@ def _bench(args) -> int:
     return 0
 
 
-if __name__ == "__main__":
-    code = main()
+def exit_now(code: int) -> None:
+    """End the process with `code` once its work is done, without the interpreter's teardown.
+
+    Python's exit frees every module and object one by one, and Taichi's runtime and JIT with them: 0.2-0.3 s of a
+    5 s idle run's 3.3 s, for nothing a user keeps. So the streams are flushed, the exit handlers run, Taichi's
+    runtime is finalized (that is what writes newly compiled kernels into its offline cache) and the process ends."""
+    import atexit
+    import os
+
+    from sims import backend
+
     interrupts.arm(False)  # done: a Ctrl-C now changes nothing, and must not print a traceback while Python exits
-    sys.exit(code)
+    backend.shutdown()
+    atexit._run_exitfuncs()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
+
+
+if __name__ == "__main__":
+    exit_now(main())

@@ -118,3 +118,21 @@ def test_the_start_up_table_has_every_stage(tmp_path):
     assert [row.split(" | ")[0][2:] for row in rows] == [*startup.STAGES, "total"]
     assert rows[-1] == f"| total | {sum(seconds.values()):.2f} | 100 % |"
     assert "startup" in SECTIONS and (tmp_path / startup.plot(results, tmp_path)[0]).stat().st_size > 10_000
+
+
+def test_the_cli_ends_without_teardown_yet_keeps_its_kernels_output_and_exit_code(tmp_path):
+    """lab.__main__.exit_now skips the interpreter's teardown (0.2-0.3 s of a short run) but still finalizes Taichi,
+    which is what writes a newly compiled kernel into the offline cache, runs the exit handlers and flushes what was
+    printed; the exit code is the one given."""
+    code = ("import atexit, sys\nfrom lab.__main__ import exit_now\nfrom sims import backend\nbackend.init('cpu')\n"
+            "import taichi as ti\nvalues = ti.field(ti.f32, 4)\n@ti.kernel\ndef double():\n"
+            "    for i in values:\n        values[i] = 2.0 * i\ndouble()\n"
+            "atexit.register(lambda: print('exit handler ran'))\nprint('printed', end='')\nsys.stderr.write('told')\nexit_now(3)\n")
+    script = tmp_path / "script.py"  # a file: Taichi reads a kernel's source
+    script.write_text(code)
+    env = dict(os.environ, TISSUE_LAB_CACHE=str(tmp_path))
+    result = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, cwd=REPO_ROOT, env=env)
+    assert result.returncode == 3
+    assert "printed" in result.stdout and "exit handler ran" in result.stdout
+    assert result.stderr.endswith("told")
+    assert list((tmp_path / "taichi").glob("*.tic")), "the compiled kernel was not written to the cache"

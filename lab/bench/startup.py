@@ -58,6 +58,7 @@ seconds["other steps"] = metrics["wall_s"] - metrics["first_step_s"]
 seconds["outputs"] = time.perf_counter() - start - metrics["wall_s"]
 seconds["total"] = time.perf_counter() - started
 print(json.dumps(seconds))
+lab.__main__.exit_now(0)  # as the CLI ends
 """
 STAGES = ("interpreter", "imports", "scene file", "mesh and textures", "Taichi start", "surface (texel maps)", "models",
           "first step", "other steps", "outputs")
@@ -114,8 +115,9 @@ def render(results: dict) -> list[str]:
         f"`python -m lab run` on an idle 5 s scene of a {results['texture_size']}² {results['plane_mm']:g} mm plane (cautery, one ball parked above it and",
         f"off; 500 steps of 0.01 s), in fresh processes with the kernel cache warm: {results['process_s']:.2f} s per process, the median of {results['runs']}",
         f"({results['process_range_s'][0]:.2f}-{results['process_range_s'][1]:.2f} s). Where it goes (medians of as many processes with each stage timed;",
-        "interpreter: Python's start and exit; surface: the display's texel maps; models: the",
-        "heat grid's texel maps, the heat model, tools and display maps; first step: with its kernels loaded from the cache;",
+        "interpreter: Python's start and exit (the CLI skips the teardown: lab.__main__.exit_now); surface: the display's",
+        "texel maps; models: the heat grid's texel maps, the heat model, tools and display maps; first step: with its",
+        "kernels loaded from the cache;",
         "outputs: final.png, its maps, state.npz, metrics.json):",
         "",
         "| stage | s | share |",

@@ -9,9 +9,10 @@ if __name__ == "__main__":
 import argparse
 from pathlib import Path
 
-from sims.backend import ARCH_CHOICES, ArchUnavailable
-from sims.config import REPO_ROOT, ConfigError, load_scene_config
-from sims.params import SIMULATION, quote
+from sims.core.backend import ARCH_CHOICES, ArchUnavailable
+from sims.core.quoting import quote
+from sims.scene.config import REPO_ROOT, ConfigError, load_scene_config
+from sims.scene.params import SIMULATION
 
 DEFAULT_SCENE = REPO_ROOT / "scenes" / "default.yaml"
 MAX_RUN_S = SIMULATION["duration_s"].max  # --duration and --frames-every are capped as a scene's duration_s is
@@ -91,7 +92,7 @@ def _run(args) -> int:
     try:
         config = load_scene_config(args.scene, args.set)  # before Taichi is imported (2 s): a bad file is told at once
         from lab import runner
-        from sims.scene import Scene
+        from sims.scene.assembly import Scene
 
         scene = Scene(config, arch=args.arch)
         interrupts.check()  # one that an import swallowed (trimesh, Taichi)
@@ -114,7 +115,7 @@ def _run(args) -> int:
 
 
 def _serve(args) -> int:
-    from lab import app
+    from lab.web import app
 
     try:
         app.serve(args.scene, args.host, args.port, args.arch, overrides=args.set, allowed_origins=args.allow_origin)
@@ -145,7 +146,7 @@ def exit_now(code: int) -> None:
     import atexit
     import os
 
-    from sims import backend
+    from sims.core import backend
 
     interrupts.arm(False)  # done: a Ctrl-C now changes nothing, and must not print a traceback while Python exits
     backend.shutdown()

@@ -25,9 +25,8 @@ from PIL import Image
 from tqdm import tqdm
 
 from lab import interrupts
-from sims.cautery import SubstepLimit
-from sims.config import ConfigError
-from sims.scene import Scene, save_npz_atomic
+from sims.scene import checks
+from sims.scene.assembly import Scene, save_npz_atomic
 
 FINITE_CHECK_EVERY = 50  # steps between NaN/inf checks
 _HOST = re.sub(r"[^A-Za-z0-9-]", "-", os.uname().nodename)[:32]  # in temporary folder names: pids are per host
@@ -54,19 +53,11 @@ def _warn_blood_lost(scene: Scene, bar) -> None:
 
 
 def check_scene(scene: Scene) -> None:
-    """Before a run: say on stderr when the mesh looks like one in metres and which retired keys the scene still holds
-    (they are ignored); raise ConfigError when the explicit heat
-    scheme would need more than sims.cautery.MAX_SUBSTEPS substeps per step."""
-    warning = scene.surface.size_warning
-    if warning:
-        print(f"warning: {scene.file}: mesh: {warning}", file=sys.stderr)
-    for note in scene.config.get("notes", ()):
-        print(f"note: {scene.file}: {note}", file=sys.stderr)
-    if scene.cautery is not None:
-        try:
-            scene.cautery.substeps(scene.time_step_s)
-        except SubstepLimit as exc:
-            raise ConfigError(scene.file, "cautery.scheme", str(exc)) from None
+    """Before a run: the scene's notes on stderr (sims.scene.checks.notes); ConfigError when it cannot run
+    (sims.scene.checks.check_runnable)."""
+    for level, text in checks.notes(scene):
+        print(f"{level}: {scene.file}: {text}", file=sys.stderr)
+    checks.check_runnable(scene)
 
 
 def _check_output_folder(out: Path) -> None:

@@ -1,6 +1,6 @@
 """A lab session without any GUI: one scene at a time, changed from any thread, stepped by one.
 
-Every front end drives the lab through a LabSession: the viser app (lab.app) is a view of one, and a script or a test
+Every front end drives the lab through a LabSession: the viser app (lab.web.app) is a view of one, and a script or a test
 can do all a browser does with the same calls. Command methods (`set_parameter`, `take_over`, `switch_scene`, ...)
 may be called from any thread: each checks its values at once against what the session offers (the scene list,
 the quality presets, the scene's parameters and their ranges; finite numbers only) and raises `Refused` with the
@@ -22,11 +22,11 @@ from pathlib import Path
 
 import numpy as np
 
-from lab.runner import check_scene
-from sims import backend, params
-from sims.config import REPO_ROOT, ConfigError, load_scene_config, parse_override
-from sims.instruments import Instrument, Pose
-from sims.scene import Refused, Scene, checked_flag, checked_number, finite_vector, load_inputs, unit_direction
+from sims.core import backend
+from sims.scene import checks, params
+from sims.scene.assembly import Refused, Scene, checked_flag, checked_number, finite_vector, load_inputs, unit_direction
+from sims.scene.config import REPO_ROOT, ConfigError, load_scene_config, parse_override
+from sims.scene.instruments import Instrument, Pose
 
 SCENES_DIR = REPO_ROOT / "scenes"
 REBUILD_DELAY_S = 0.5     # a rebuild waits until its sliders have been still this long (one rebuild per drag)
@@ -70,7 +70,7 @@ def fitting_overrides(path: Path, overrides: dict) -> dict:
 
 
 def override_texts(overrides: dict) -> list[str]:
-    """{dotted.key: value} -> ["dotted.key=value", ...] for sims.config.load_scene_config."""
+    """{dotted.key: value} -> ["dotted.key=value", ...] for sims.scene.config.load_scene_config."""
     import json
 
     def flow(value) -> str:  # YAML flow text that reads back as the same value (YAML 1.1 reads 1e-05 as text)
@@ -146,7 +146,7 @@ class LabSession:
         return str(path)
 
     def parameters(self) -> dict:
-        """The running scene's parameters (sims.scene.SceneParameter by key)."""
+        """The running scene's parameters (sims.scene.assembly.SceneParameter by key)."""
         return self.scene.parameters()
 
     def parameter_value(self, key: str):
@@ -372,7 +372,7 @@ class LabSession:
 
     def _apply_parameters(self) -> None:
         """Apply the latest value of each live parameter; one that would take the explicit heat scheme past its
-        substep cap (sims.cautery.MAX_SUBSTEPS) is put back and refused."""
+        substep cap (sims.heat.cautery.MAX_SUBSTEPS) is put back and refused."""
         with self._lock:
             pending, self._pending_parameters = self._pending_parameters, {}
         for key, value in pending.items():
@@ -381,7 +381,7 @@ class LabSession:
             old = self.scene.parameter_value(key)
             changed = self.scene.set_parameter(key, value)
             try:
-                check_scene(self.scene)
+                checks.check_runnable(self.scene)
             except ConfigError as exc:
                 self.scene.set_parameter(key, old)
                 self.notice = f"refused: {key} = {value:g}: {exc.message}"
@@ -496,7 +496,7 @@ class LabSession:
             backend.shutdown()  # its fields are gone: only the simulation thread touches fields, after this build
         try:
             scene = Scene(config, self.arch, inputs)
-            check_scene(scene)
+            checks.check_runnable(scene)
         except Exception as exc:  # whatever failed, the old scene is gone: the last good one comes back from memory
             if first:
                 raise
@@ -519,4 +519,4 @@ class LabSession:
         self._anchor = None
         seconds = time.perf_counter() - started
         self.build_seconds.append((scene.name, seconds))
-        self.on_build("done", scene.name, seconds, tuple(scene.config.get("notes", ())))
+        self.on_build("done", scene.name, seconds, tuple(text for _, text in checks.notes(scene)))

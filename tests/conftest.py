@@ -2,13 +2,13 @@ import os
 
 import pytest
 
-# Kernels compiled without Taichi's advanced IR optimisation (sims.backend.init): the suite compiles thousands of
+# Kernels compiled without Taichi's advanced IR optimisation (sims.core.backend.init): the suite compiles thousands of
 # kernels, and tests check what a step computes, never how fast. Subprocesses of tests inherit it, except the runs
 # that compare the bytes of the serial and parallel particle steps, which compile as the lab does: without that
 # optimisation the two round differently.
 os.environ.setdefault("TISSUE_LAB_QUICK_COMPILE", "1")
 
-from sims import backend
+from sims.core import backend
 from tests import browser
 
 

@@ -4,7 +4,7 @@ import signal
 import numpy as np
 import trimesh
 
-from sims import params
+from sims.scene import params
 
 
 def plane_mesh(width_mm: float, height_mm: float, cells: int = 8, slope_deg: float = 0.0) -> trimesh.Trimesh:
@@ -40,7 +40,7 @@ def cautery_values(**changes) -> dict:
 def surface_only_values(**changes) -> dict:
     """Cautery values under which a field uniform in depth stays uniform: insulated bottom, no loss to air. The layered
     model then spreads heat exactly as a surface-only one."""
-    from sims.cautery import SURFACE_ONLY
+    from sims.heat.cautery import SURFACE_ONLY
 
     return cautery_values(**{**SURFACE_ONLY, **changes})
 

@@ -8,7 +8,7 @@ messages as `{"__binary_index", "dtype"}` placeholders; to the server, one msgpa
 with its class name under "type". Values are sent as given (NaN, inf, a string not among a
 dropdown's options, numbers out of range): the server has to cope with whatever a page sends.
 
-Modes: a normal client answers localStorage reads as a browser does (lab.client_sync relies on
+Modes: a normal client answers localStorage reads as a browser does (lab.web.client_sync relies on
 them); `answer_requests=False` gives a "silent" client that reads everything and never answers;
 `stall()` stops reading the socket (websockets then stops reading from TCP once `max_queue` frames
 are waiting, so the server's sends back up), `resume()` reads again.
@@ -30,7 +30,6 @@ from websockets.client import ClientProtocol
 from websockets.frames import Frame, Opcode
 from websockets.typing import Origin, Subprotocol
 from websockets.uri import parse_uri
-
 
 
 def decode_frame(frame: bytes) -> list[dict]:

@@ -3,7 +3,7 @@
 has drawn the whole tissue texture. Browsers are raw websockets (tests/raw_client.py) that record notifications."""
 import time
 
-from sims.config import REPO_ROOT
+from sims.scene.config import REPO_ROOT
 from tests import browser
 from tests.raw_client import RawClient
 
@@ -31,7 +31,7 @@ def wait(condition, timeout_s: float = 60.0) -> None:
 
 
 def test_pages_that_connect_during_builds_see_the_notice_then_the_scene_and_the_clock_waits_for_a_drawn_texture():
-    from lab.app import LabApp
+    from lab.web.app import LabApp
 
     joined: list[Watcher] = []
 

@@ -1,4 +1,4 @@
-"""sims.backend's shortcuts in Taichi's Python front end give what Taichi's own code gives."""
+"""sims.core.backend's shortcuts in Taichi's Python front end give what Taichi's own code gives."""
 import textwrap
 from pathlib import Path
 
@@ -6,7 +6,7 @@ import pytest
 import taichi as ti
 from taichi.lang.exception import TaichiSyntaxError
 
-from sims import backend
+from sims.core import backend
 
 SOURCES = Path(backend.__file__).parent
 

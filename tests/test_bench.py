@@ -6,7 +6,8 @@ import math
 import numpy as np
 import pytest
 
-from sims import analytic, params
+from lab.reference import analytic
+from sims.scene import params
 
 
 def test_gaussian_reference_keeps_its_integral_and_spreads():

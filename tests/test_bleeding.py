@@ -8,11 +8,11 @@ import sys
 import numpy as np
 import pytest
 
-from sims import params
-from sims.config import REPO_ROOT, load_scene_config
-from sims.scene import Scene
-from sims.sph import Bleeding
-from sims.surface import build_surface, load_mesh
+from sims.blood.particles import Bleeding
+from sims.scene import params
+from sims.scene.assembly import Scene
+from sims.scene.config import REPO_ROOT, load_scene_config
+from sims.surface.texels import build_surface, load_mesh
 from tests.helpers import plane_mesh
 
 DEFAULTS = {name: spec.default for name, spec in params.BLEEDING.items()}
@@ -277,7 +277,7 @@ def test_every_slider_at_each_end(patch_256, end):
 
 
 def test_a_parameter_changed_between_steps_acts_at_the_next_step(patch_256):
-    """The step's scalars sit on the device and are written only when they change (sims.sph.STEP_VALUES): a slider
+    """The step's scalars sit on the device and are written only when they change (sims.blood.particles.STEP_VALUES): a slider
     moved between two steps acts at the next one."""
     same, changed = (bleeding_on(patch_256, capacity=1000) for _ in range(2))
     for pool in (same, changed):
@@ -295,11 +295,11 @@ def test_a_parameter_changed_between_steps_acts_at_the_next_step(patch_256):
 
 
 def test_the_step_whose_pool_outgrows_the_launching_thread_compiles_nothing(patch_256):
-    """A pool that can outgrow the launching thread's share (sims.backend.serial) has the thread pool's kernels
+    """A pool that can outgrow the launching thread's share (sims.core.backend.serial) has the thread pool's kernels
     compiled with it: the step on which the pool crosses the share compiles no kernel (compiled on that step, they
     stalled the lab 1.9 s), and the step runs on."""
-    from sims import backend
-    from sims.sph import PARTICLE_LOOP_ITEMS
+    from sims.blood.particles import PARTICLE_LOOP_ITEMS
+    from sims.core import backend
 
     bleeding = Bleeding(patch_256, dict(DEFAULTS), (0.0, 0.0, 0.0), 12_000)
     bleeding.spawn((128, 128), 200, 2.0)
@@ -341,8 +341,8 @@ def test_the_gpu_sort_orders_the_pool_as_the_serial_sort(monkeypatch):
     each cell's slots in index order) puts the pool in the serial sort's order: the same bytes after 10 steps of
     30,000 particles flowing down the bench's disk (21,000 cells: 21 blocks of keys), every loop parallel."""
     from lab.bench.bleeding import _defaults, build_plane
-    from lab.sph_reference import disk_positions
-    from sims import backend
+    from lab.reference.sph import disk_positions
+    from sims.core import backend
 
     monkeypatch.setattr(backend, "SERIAL_BELOW_ITEMS", 0)
     values = _defaults()
@@ -368,7 +368,7 @@ def test_the_gpu_sort_orders_a_dense_clump_as_the_serial_sort(patch_256, monkeyp
     """A clump on one point, one cell: the GPU sort's runs of 32 ranked, then merged 32 at a time (one level, its
     result copied back from the scratch, for a pool under 1,024; two, runs of 1,024 then the cell, above) give the
     serial sort's order, every loop parallel, as the clump bursts."""
-    from sims import backend
+    from sims.core import backend
 
     monkeypatch.setattr(backend, "SERIAL_BELOW_ITEMS", 0)
     states = []
@@ -389,7 +389,7 @@ def test_the_gpu_sort_orders_a_dense_clump_as_the_serial_sort(patch_256, monkeyp
                                                      ("height_field", "hemostasis.yaml", "2.6")])  # the last: with suction
 def test_identical_state_with_one_and_two_threads_and_with_small_loops_serial(tmp_path, method, scene, duration):
     """The same bytes on 1 and 2 threads with every loop parallel (TISSUE_LAB_SERIAL_BELOW=0), and with small loops on
-    the launching thread (the default, sims.backend.serial)."""
+    the launching thread (the default, sims.core.backend.serial)."""
     outputs = []
     for threads, serial_below in (("1", "0"), ("2", "0"), ("2", None)):
         out = tmp_path / f"threads{threads}_{serial_below}"

@@ -1,11 +1,11 @@
-"""A scene picks its bleeding method (bleeding.method, sims.models): the parameters, metrics and state arrays come from
+"""A scene picks its bleeding method (bleeding.method, sims.blood.methods): the parameters, metrics and state arrays come from
 the method in use, with the common keys in the same units for both, and a key of the other method is refused."""
 import numpy as np
 import pytest
 
-from sims import params
-from sims.config import REPO_ROOT, ConfigError, load_scene_config
-from sims.scene import Scene
+from sims.scene import params
+from sims.scene.assembly import Scene
+from sims.scene.config import REPO_ROOT, ConfigError, load_scene_config
 
 COMMON = ("blood_area_mm2", "max_thickness_mm", "volume_ml", "spawned_ml", "on_surface_ml", "suctioned_ml",
           "left_surface_ml", "dried_ml")

@@ -1,4 +1,4 @@
-"""The burn at display resolution (sims.heat_display: state.npz, the look) against the metrics and the heat grid: Omega
+"""The burn at display resolution (sims.heat.display: state.npz, the look) against the metrics and the heat grid: Omega
 is read through its log, so its edge stays where the heat grid puts it (issue 38, point 9)."""
 import numpy as np
 import pytest
@@ -6,9 +6,9 @@ import taichi as ti
 import yaml
 
 from lab.bench.common import plane_mesh
-from sims.cautery import LOG_OMEGA_FLOOR
-from sims.config import load_scene_config
-from sims.scene import Scene
+from sims.heat.cautery import LOG_OMEGA_FLOOR
+from sims.scene.assembly import Scene
+from sims.scene.config import load_scene_config
 
 
 def held_ball(tmp_path, u_scale: float, divisor: int) -> Scene:
@@ -68,8 +68,8 @@ def test_the_look_reads_omega_as_the_state_does(tmp_path):
 def test_a_level_set_of_an_exponential_stays_put():
     """Omega = exp(x / mm) up to x = 15 mm, 0 beyond, on a 3:1 stretched coarse grid read on the fine one: exact inside
     (log-linear), so the level Omega = 1 stays at x = 0; zeros stay zeros."""
-    from sims.resample import GridResampler
-    from sims.surface import build_surface, surface_at
+    from sims.surface.resample import GridResampler
+    from sims.surface.texels import build_surface, surface_at
 
     fine = build_surface(plane_mesh(40.0, 40.0, u_scale=1 / 3), 96)
     coarse = surface_at(fine, 48)
@@ -89,8 +89,8 @@ def test_the_area_read_on_a_burns_box_is_the_area_read_on_the_whole_grid():
     reading their nearest coarse texel): the same area as the whole grid read, on a sphere of many UV charts, for a
     burn at each of a few points and for none."""
     from lab.bench.heat import sphere_surface
-    from sims.resample import GridResampler
-    from sims.surface import surface_at
+    from sims.surface.resample import GridResampler
+    from sims.surface.texels import surface_at
 
     fine = sphere_surface(128)
     coarse = surface_at(fine, 64)

@@ -11,7 +11,7 @@ import pytest
 import yaml
 
 from lab.__main__ import main
-from sims.config import REPO_ROOT
+from sims.scene.config import REPO_ROOT
 
 DEFAULT_SCENE = REPO_ROOT / "scenes" / "default.yaml"
 
@@ -61,6 +61,7 @@ BAD_SCENES = {
     "not finite": (bad({"time_step_s": float("nan")}), "time_step_s", "finite"),
     "infinite vector": (bad({"instruments.0.position_mm": [0.0, float("inf"), 0.0]}), "instruments.0.position_mm", "finite"),
     "unknown model": (bad({"models": ["cautery", "smoke"]}), "models.1", "unknown value 'smoke'"),
+    "model listed twice": (bad({"models": ["cautery", "cautery"]}), "models.1", "cautery is listed twice"),
     "unknown shape": (bad({"instruments.0.shape.type": "scalpel"}), "instruments.0.shape.type", "unknown value"),
     "missing required key": (bad(delete=["mesh"]), "mesh", "missing required key"),
     "missing mesh file": (bad({"mesh": "meshes/nowhere.obj"}), "mesh", "file not found"),
@@ -184,7 +185,7 @@ def test_a_restarted_runtime_stays_on_its_device_and_starts_empty():
     """backend.restart() (the benches between scenes): the same device again, and fields made before it are gone."""
     import taichi as ti
 
-    from sims import backend
+    from sims.core import backend
 
     arch = backend.init("cpu")
     for _ in range(3):  # each field made after a launch is one more SNode tree of the runtime
@@ -198,12 +199,12 @@ def test_a_restarted_runtime_stays_on_its_device_and_starts_empty():
 
 
 def test_a_kernel_compiled_again_points_its_mistake_at_its_own_line():
-    """Taichi's source-position text is remembered by place (sims.backend): a kernel compiled again for another field
+    """Taichi's source-position text is remembered by place (sims.core.backend): a kernel compiled again for another field
     still marks its own line and name, and a kernel whose mistake sits at the same place in its body (same length of
     name, same columns) gets its own line, not the other's."""
     import taichi as ti
 
-    from sims import backend
+    from sims.core import backend
 
     backend.init("cpu")
 
@@ -226,7 +227,7 @@ def test_a_kernel_compiled_again_points_its_mistake_at_its_own_line():
 
 
 def test_non_finite_state_stops_the_run_naming_field_and_step(tmp_path, monkeypatch, capsys):
-    from sims.scene import Scene
+    from sims.scene.assembly import Scene
 
     original_step = Scene.step
 
@@ -296,7 +297,7 @@ def test_malformed_values_are_refused_in_one_short_line(tmp_path, capsys, text, 
 
 def test_an_exponent_without_a_dot_is_a_number(tmp_path):
     """YAML 1.1 reads 1e-3 as text (it was refused as "got str '1e-3'"); YAML 1.2 and every user read a number."""
-    from sims.config import load_scene_config
+    from sims.scene.config import load_scene_config
 
     path = write_scene(tmp_path, text=yaml.safe_dump(bad(delete=["duration_s"])) + "duration_s: 5E-1\n")
     config = load_scene_config(path, ["time_step_s=1e-3", "instruments.0.tip_temperature_c=2.5e2"])

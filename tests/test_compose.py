@@ -1,10 +1,10 @@
-"""The look recomposes only the display tiles a change of the burn reaches (sims.display_tiles), and what it shows is
+"""The look recomposes only the display tiles a change of the burn reaches (sims.look.display_tiles), and what it shows is
 byte for byte what a full pass shows: while a tool burns, after a reset, on either heat grid, and with a stage that
 shows the temperature (then every stepped tile changes the look, not only the damaged ones)."""
 import numpy as np
 import pytest
 
-from sims.config import REPO_ROOT
+from sims.scene.config import REPO_ROOT
 
 
 def full_pass(scene) -> list:
@@ -24,7 +24,7 @@ HOT_GLOW = ("look.stages=[{name: healthy, texture: textures/liver_healthy.png}, 
 
 @pytest.mark.parametrize("divisor, look", [(1, None), (2, None), (1, HOT_GLOW)], ids=["heat-grid", "half-heat-grid", "temperature-stage"])
 def test_recomposing_the_changed_tiles_shows_what_a_full_pass_shows(divisor, look):
-    from sims.scene import Scene
+    from sims.scene.assembly import Scene
 
     overrides = ["texture_size=128", f"cautery.heat_grid_divisor={divisor}"] + ([look] if look else [])
     scene = Scene.from_file(REPO_ROOT / "scenes" / "default.yaml", overrides)
@@ -46,7 +46,7 @@ def test_recomposing_the_changed_tiles_shows_what_a_full_pass_shows(divisor, loo
 
 
 def test_an_idle_scene_recomposes_nothing():
-    from sims.scene import Scene
+    from sims.scene.assembly import Scene
 
     scene = Scene.from_file(REPO_ROOT / "scenes" / "default.yaml", ["texture_size=64", "instruments=[]"])
     for _ in range(20):  # the first step steps every tile once
@@ -62,9 +62,9 @@ def test_an_idle_scene_recomposes_nothing():
                                                 ("hemostasis.yaml", "height_field")])
 def test_recomposing_where_the_blood_changed_shows_what_a_full_pass_shows(scene_file, method):
     """Blood spreads, is sucked away, clots and leaves stains; the look recomposes only the tiles the film's touched
-    tiles reach (sims.film, sims.display_tiles), every map equals a pass over every tile, and every texel that changed
+    tiles reach (sims.look.film, sims.look.display_tiles), every map equals a pass over every tile, and every texel that changed
     between two composites lies in a tile Scene.take_display_changes() names."""
-    from sims.scene import Scene
+    from sims.scene.assembly import Scene
 
     scene = Scene.from_file(REPO_ROOT / "scenes" / scene_file, ["texture_size=256", f"bleeding.method={method}"])
     written, before = [], shown_maps(scene)
@@ -90,7 +90,7 @@ def test_composing_only_the_wanted_tiles_shows_there_what_a_full_pass_shows():
     hemostasis scenes step together, one composes every tile, the other only a changing third of the tiles whose maps
     would change (pending_display_changes); in every wanted tile the maps are byte for byte the full pass's, the
     others keep what they showed, and a composite of everything afterwards catches up with the full pass."""
-    from sims.scene import Scene
+    from sims.scene.assembly import Scene
 
     overrides = ["texture_size=128"]
     full, lazy = (Scene.from_file(REPO_ROOT / "scenes" / "hemostasis.yaml", overrides) for _ in range(2))
@@ -125,7 +125,7 @@ def test_blood_at_rest_that_clots_is_recomposed():
     tiles where the clot shown moved by CLOT_STEP or more, so the look darkens there; a smaller change flags nothing."""
     import taichi as ti
 
-    from sims.film import CLOT_STEP, BloodFilm
+    from sims.look.film import CLOT_STEP, BloodFilm
 
     class Pool:  # a bleeding method with a film 0.5 mm deep everywhere, always moving
         film_shape, film_display, moved = (32, 32), None, True

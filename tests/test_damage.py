@@ -4,9 +4,9 @@ import math
 import numpy as np
 import pytest
 
-from sims.cautery import GAS_CONSTANT, KELVIN, Cautery
-from sims.instruments import InstrumentFields
-from sims.surface import build_surface
+from sims.heat.cautery import GAS_CONSTANT, KELVIN, Cautery
+from sims.scene.instruments import InstrumentFields
+from sims.surface.texels import build_surface
 from tests.helpers import plane_mesh, surface_only_values, tissue_values
 
 
@@ -74,8 +74,8 @@ def test_damage_starts_only_once_the_tissue_crosses_the_threshold(scheme):
     """Both schemes: a plate at 80 C touching all of a 37 C plane of one insulated layer relaxes the layer toward 80 C at
     the contact rate; its Omega stays 0 until T passes 43 C and then follows the exact integral from the crossing on
     (dt 1 ms: within 1 %)."""
-    from sims import analytic
-    from sims.instruments import Instrument
+    from lab.reference import analytic
+    from sims.scene.instruments import Instrument
 
     plate = Instrument.from_config({
         "name": "plate", "shape": {"type": "ball", "radius_mm": 100.0, "length_mm": 1, "width_mm": 1, "thickness_mm": 1},

@@ -6,37 +6,38 @@ import numpy as np
 import pytest
 
 from lab.bench import dambreak
-from sims import params
-from sims.sph import Bleeding
+from lab.reference import dambreak as reference
+from sims.blood.particles import Bleeding
+from sims.scene import params
 
-MM = np.asarray(dambreak.MARTIN_MOYCE)
+MM = np.asarray(reference.MARTIN_MOYCE)
 
 
 def test_martin_moyce_front_hits_the_data_and_interpolates_linearly():
-    for T, Z in dambreak.MARTIN_MOYCE:
-        assert dambreak.martin_moyce_front(T) == pytest.approx(Z)
+    for T, Z in reference.MARTIN_MOYCE:
+        assert reference.martin_moyce_front(T) == pytest.approx(Z)
     middle = 0.5 * (MM[0] + MM[1])
-    assert dambreak.martin_moyce_front(middle[0]) == pytest.approx(middle[1])
-    assert dambreak.martin_moyce_front(3.0) == pytest.approx(3.728 + (3.0 - 2.95) / (3.598 - 2.95) * (4.528 - 3.728))
-    values = dambreak.martin_moyce_front(MM[:, 0])
+    assert reference.martin_moyce_front(middle[0]) == pytest.approx(middle[1])
+    assert reference.martin_moyce_front(3.0) == pytest.approx(3.728 + (3.0 - 2.95) / (3.598 - 2.95) * (4.528 - 3.728))
+    values = reference.martin_moyce_front(MM[:, 0])
     np.testing.assert_allclose(values, MM[:, 1])
-    assert math.isnan(dambreak.martin_moyce_front(0.5)) and math.isnan(dambreak.martin_moyce_front(6.0))
+    assert math.isnan(reference.martin_moyce_front(0.5)) and math.isnan(reference.martin_moyce_front(6.0))
 
 
 def test_front_error_of_a_known_history():
     offsets = np.array([0.1, -0.3, 0.2, 0.0, 0.1, -0.1, 0.05, 0.4, -0.2, 0.1])
-    error = dambreak.front_error(np.concatenate([[0.0], MM[:, 0]]), np.concatenate([[1.0], MM[:, 1] + offsets]))
+    error = reference.front_error(np.concatenate([[0.0], MM[:, 0]]), np.concatenate([[1.0], MM[:, 1] + offsets]))
     assert error["points"] == 10
     assert error["mean_abs_a"] == pytest.approx(np.abs(offsets).mean())
     assert error["max_abs_a"] == pytest.approx(0.4)
     assert error["mean_signed_a"] == pytest.approx(offsets.mean())
     # a straight line between samples: Z = 1 + T ahead of Martin & Moyce by (1 + T) - Z_MM at their times
     T = np.linspace(0.0, 2.0, 41)
-    error = dambreak.front_error(T, 1.0 + T)
+    error = reference.front_error(T, 1.0 + T)
     inside = MM[MM[:, 0] <= 2.0]
     assert error["points"] == len(inside) == 3
     assert error["mean_abs_a"] == pytest.approx(np.abs(1.0 + inside[:, 0] - inside[:, 1]).mean())
-    assert math.isnan(dambreak.front_error([0.0, 0.5], [1.0, 1.1])["mean_abs_a"])
+    assert math.isnan(reference.front_error([0.0, 0.5], [1.0, 1.1])["mean_abs_a"])
 
 
 def test_walls_keep_a_dense_clump_inside_with_a_large_step():

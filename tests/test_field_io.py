@@ -1,9 +1,9 @@
-"""sims.field_io.load: many fields set in one launch, the same values as Taichi's own from_numpy and fill."""
+"""sims.core.field_io.load: many fields set in one launch, the same values as Taichi's own from_numpy and fill."""
 import numpy as np
 import pytest
 import taichi as ti
 
-from sims import backend, field_io
+from sims.core import backend, field_io
 
 
 @pytest.fixture(scope="module", autouse=True)

@@ -1,16 +1,16 @@
 """The code paths a GPU takes, run on the CPU: the same bytes as the CPU's own paths.
 
-On a GPU (sims.backend.on_cpu() False) every loop runs in parallel (sims.backend.serial), the particle sort and the
-tile schedule's lists are built by blocks (sims.scan) instead of on one thread. Those paths must give what the
+On a GPU (sims.core.backend.on_cpu() False) every loop runs in parallel (sims.core.backend.serial), the particle sort and the
+tile schedule's lists are built by blocks (sims.core.scan) instead of on one thread. Those paths must give what the
 CPU's give, so that a scene is the same scene on any device.
 """
 import numpy as np
 import pytest
 
-from sims import backend
-from sims.config import REPO_ROOT, load_scene_config
-from sims.scene import Scene
-from sims.tiles import LIST_BLOCK
+from sims.core import backend
+from sims.scene.assembly import Scene
+from sims.scene.config import REPO_ROOT, load_scene_config
+from sims.surface.sleep_tiles import LIST_BLOCK
 
 
 def state_after(scene_file: str, changes: list, steps: int, gpu_paths: bool) -> dict:
@@ -18,7 +18,7 @@ def state_after(scene_file: str, changes: list, steps: int, gpu_paths: bool) -> 
     for _ in range(steps):
         scene.step()
     models = [model for model in (scene.cautery, scene.bleeding) if model is not None]
-    if scene.cautery is not None:  # more than one block of tiles (sims.tiles.LIST_BLOCK)
+    if scene.cautery is not None:  # more than one block of tiles (sims.surface.sleep_tiles.LIST_BLOCK)
         assert scene.cautery.tiles.tiles > 4 * LIST_BLOCK
     assert [model.tiles.parallel_lists if hasattr(model, "tiles") else model.parallel_sort
             for model in models] == [gpu_paths] * len(models)

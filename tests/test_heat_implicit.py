@@ -10,12 +10,13 @@ import pytest
 import yaml
 from scipy import ndimage
 
-from sims import analytic, config
-from sims.cautery import CG_TOLERANCE, SCHEMES, Cautery
-from sims.config import REPO_ROOT, ConfigError, load_scene_config
-from sims.instruments import Instrument, InstrumentFields
-from sims.scene import Scene
-from sims.surface import build_surface, load_mesh
+from lab.reference import analytic
+from sims.heat.cautery import CG_TOLERANCE, SCHEMES, Cautery
+from sims.scene import config
+from sims.scene.assembly import Scene
+from sims.scene.config import REPO_ROOT, ConfigError, load_scene_config
+from sims.scene.instruments import Instrument, InstrumentFields
+from sims.surface.texels import build_surface, load_mesh
 from tests.helpers import cautery_values, plane_mesh, surface_only_values, tissue_values
 
 BODY = 37.0

@@ -5,10 +5,11 @@ import numpy as np
 import pytest
 from scipy.special import erf
 
-from sims import layers, params
-from sims.cautery import Cautery
-from sims.instruments import Instrument, InstrumentFields
-from sims.surface import build_surface
+from sims.heat import layers
+from sims.heat.cautery import Cautery
+from sims.scene import params
+from sims.scene.instruments import Instrument, InstrumentFields
+from sims.surface.texels import build_surface
 from tests.helpers import cautery_values, plane_mesh, tissue_values
 
 BODY = 37.0
@@ -204,7 +205,7 @@ def test_hard_cases_stay_finite_and_bounded(layer_count, depth_mm):
 
 def test_an_old_scene_with_a_heated_layer_loads_with_a_note(tmp_path):
     """cautery.heated_layer_mm is gone (the heat goes into layers): an old scene still loads, and says so."""
-    from sims.config import REPO_ROOT, load_scene_config
+    from sims.scene.config import REPO_ROOT, load_scene_config
 
     text = (REPO_ROOT / "scenes/default.yaml").read_text().replace("cautery:\n", "cautery:\n  heated_layer_mm: 1.0\n", 1)
     path = tmp_path / "old.yaml"
@@ -219,9 +220,9 @@ def test_an_old_scene_with_a_heated_layer_loads_with_a_note(tmp_path):
 def test_the_cross_section_shows_the_burn_under_the_last_energized_tool():
     """Scene.burn_section cuts across the ball's stroke where it is; the picture outlines the coagulated zone in white
     and is as deep as the burn (the browser's Burn cross-section folder shows this picture)."""
-    from lab.section_view import PIXELS_PER_MM, MARGIN_LEFT, MARGIN_TOP, section_image
-    from sims.config import REPO_ROOT
-    from sims.scene import Scene
+    from lab.web.section_view import MARGIN_LEFT, MARGIN_TOP, PIXELS_PER_MM, section_image
+    from sims.scene.assembly import Scene
+    from sims.scene.config import REPO_ROOT
 
     scene = Scene.from_file(REPO_ROOT / "scenes/default.yaml", ["texture_size=128"])
     assert scene.burn_section() is None  # no tool energized yet
@@ -246,8 +247,8 @@ def test_the_cross_section_shows_the_burn_under_the_last_energized_tool():
 def test_layers_that_would_not_fit_in_memory_are_refused_with_the_key_named():
     """16 layers under a 2048^2 heat grid would take 1.07 GB of layered fields: the scene is refused before anything is
     built (the default heat grid, half as fine, would fit)."""
-    from sims.config import ConfigError, REPO_ROOT
-    from sims.scene import Scene
+    from sims.scene.assembly import Scene
+    from sims.scene.config import REPO_ROOT, ConfigError
 
     with pytest.raises(ConfigError) as error:
         Scene.from_file(REPO_ROOT / "scenes/default.yaml", ["texture_size=2048", "cautery.layers=16", "cautery.heat_grid_divisor=1"])

@@ -1,4 +1,4 @@
-"""Height-field blood (sims.height_field): lake at rest (plain, stretched UVs, across a seam), Ritter's dam break,
+"""Height-field blood (sims.blood.height_field): lake at rest (plain, stretched UVs, across a seam), Ritter's dam break,
 exact accounting with sources and sinks, a level pool in a paraboloid hollow, hard cases."""
 import math
 
@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from sims.height_field import HeightFieldBleeding
-from sims.params import HEIGHT_FIELD
-from sims.surface import build_surface
+from sims.blood.height_field import HeightFieldBleeding
+from sims.scene.params import HEIGHT_FIELD
+from sims.surface.texels import build_surface
 from tests.helpers import plane_mesh
 
 DEFAULTS = {name: spec.default for name, spec in HEIGHT_FIELD.items()}
@@ -316,7 +316,7 @@ def test_a_dry_surface_costs_nothing_and_wakes_on_blood(bowls):
 
 
 def test_the_step_whose_blood_outgrows_the_launching_thread_compiles_nothing():
-    """On a grid with more tiles than the launching thread's share (sims.backend.serial: 512 tiles of 4 x 4 texels),
+    """On a grid with more tiles than the launching thread's share (sims.core.backend.serial: 512 tiles of 4 x 4 texels),
     the thread pool's kernels are compiled with the model: the step on which the wetted tiles cross the share, with a
     suction tool on, compiles no kernel (compiled on that step, they stalled a 1024² lab 0.8 s mid-bleed)."""
     surface = build_surface(plane_mesh(30.0, 30.0), 128)

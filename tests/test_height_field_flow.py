@@ -1,4 +1,4 @@
-"""Height-field blood (sims.height_field), accuracy and stability (issue 11): Nusselt's film on an incline, the same
+"""Height-field blood (sims.blood.height_field), accuracy and stability (issue 11): Nusselt's film on an incline, the same
 film under a 2:1 UV stretch and at twice the resolution, exact volume across the liver lobe's UV seams, hard cases
 (a vertical wall, a 1 ml/s jet into one texel, the largest time step, the parameter range ends, drying out) and a
 lake at rest for 10,000 steps.
@@ -15,12 +15,18 @@ import pytest
 import trimesh
 from scipy import ndimage
 
-from sims import params
-from sims.height_field import CAPACITY_MM, kinematic_viscosity_mm2_s
-from sims.surface import build_surface, load_mesh, surface_at
+from sims.blood.height_field import CAPACITY_MM, kinematic_viscosity_mm2_s
+from sims.scene import params
+from sims.surface.texels import build_surface, load_mesh, surface_at
 from tests.helpers import plane_mesh
-from tests.test_height_field import G, assert_exact, blood_on, bowl_surface, level_pool
-from tests.test_height_field import _forget_models  # noqa: F401  (blood_on's models die with this module's Taichi runtime)
+from tests.test_height_field import (
+    G,
+    _forget_models,  # noqa: F401  (blood_on's models die with this module's Taichi runtime)
+    assert_exact,
+    blood_on,
+    bowl_surface,
+    level_pool,
+)
 
 REPO = Path(__file__).resolve().parents[1]
 NO_LOSS = {"pinning_depth_mm": 0.0, "clotting_rate_1_s": 0.0, "lifetime_s": 36000.0}

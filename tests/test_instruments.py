@@ -4,11 +4,11 @@ import pytest
 import taichi as ti
 import trimesh
 
-from sims.cautery import Cautery
-from sims.config import REPO_ROOT, load_scene_config
-from sims.instruments import Instrument, InstrumentFields, local_frame
-from sims.scene import Scene
-from sims.surface import build_surface
+from sims.heat.cautery import Cautery
+from sims.scene.assembly import Scene
+from sims.scene.config import REPO_ROOT, load_scene_config
+from sims.scene.instruments import Instrument, InstrumentFields, local_frame
+from sims.surface.texels import build_surface
 from tests.helpers import cautery_values, plane_mesh, tissue_values
 
 

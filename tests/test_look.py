@@ -1,4 +1,4 @@
-"""The look (sims.compose, sims.film): blood's colour from its thickness against the two-flux equations it solves and
+"""The look (sims.look.compose, sims.look.film): blood's colour from its thickness against the two-flux equations it solves and
 against what whole blood does to light (DESIGN section 7), the film kept on simulated time, relief and gloss in the
 normal and roughness maps, the dried stain."""
 import numpy as np
@@ -8,9 +8,16 @@ import taichi as ti
 from PIL import Image
 
 from lab.runner import run
-from sims.compose import BLOOD_MU_A_DEOXY, BLOOD_MU_A_OXY, BLOOD_MU_S_REDUCED, CLOT_SATURATION, FRESH_SATURATION, blood_layer
-from sims.config import REPO_ROOT
-from sims.scene import Scene
+from sims.look.compose import (
+    BLOOD_MU_A_DEOXY,
+    BLOOD_MU_A_OXY,
+    BLOOD_MU_S_REDUCED,
+    CLOT_SATURATION,
+    FRESH_SATURATION,
+    blood_layer,
+)
+from sims.scene.assembly import Scene
+from sims.scene.config import REPO_ROOT
 
 BLEEDING = REPO_ROOT / "scenes" / "bleeding.yaml"
 
@@ -134,7 +141,7 @@ def test_a_burn_sinks_and_its_char_is_matte():
 
 
 def test_a_surface_map_that_is_no_image_is_refused_with_its_key_named():
-    from sims.config import ConfigError
+    from sims.scene.config import ConfigError
 
     with pytest.raises(ConfigError) as error:
         Scene.from_file(BLEEDING, ["texture_size=32", "look.stages=[{name: healthy, texture: textures/liver_healthy.png, "

@@ -6,7 +6,7 @@ seconds)."""
 import numpy as np
 import pytest
 
-from sims.config import REPO_ROOT
+from sims.scene.config import REPO_ROOT
 from tests import browser
 
 needs_chromium = pytest.mark.skipif(not browser.have_chromium(), reason=f"needs Debian chromium at {browser.CHROMIUM} (.ci/run installs it)")
@@ -26,7 +26,7 @@ LIT_LEVELS = 100        # shading steps are counted in the highlight: pixels bri
 
 @pytest.fixture(scope="module")
 def lab():
-    from lab.app import LabApp
+    from lab.web.app import LabApp
 
     app = LabApp(REPO_ROOT / "scenes" / "bleeding.yaml", "127.0.0.1", browser.free_port(), "cpu",
                  overrides=("texture_size=256", "bleed_points.0.rate_ml_s=0.1"))

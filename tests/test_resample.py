@@ -1,12 +1,12 @@
-"""The heat grid read on the display grid (sims.resample, cautery.heat_grid_divisor): no value crosses from one UV
+"""The heat grid read on the display grid (sims.surface.resample, cautery.heat_grid_divisor): no value crosses from one UV
 chart to its neighbour in UV space, bounds hold, and a burn measures the same on either grid."""
 import numpy as np
 import pytest
 
 from lab.bench.heat import SPHERE_RADIUS_MM, sphere_surface
-from sims.config import REPO_ROOT
-from sims.resample import GridResampler
-from sims.surface import surface_at
+from sims.scene.config import REPO_ROOT
+from sims.surface.resample import GridResampler
+from sims.surface.texels import surface_at
 
 
 @pytest.fixture(scope="module")
@@ -30,7 +30,7 @@ def two_charts_touching_in_uv():
 def test_values_never_cross_to_a_chart_that_only_touches_in_uv():
     """f = z on the coarse grid of two charts side by side in UV but 10 mm apart: every display texel reads its own
     chart's value exactly (a tap across the shared line would mix in 10 mm)."""
-    from sims.surface import build_surface
+    from sims.surface.texels import build_surface
 
     fine = build_surface(two_charts_touching_in_uv(), 64)
     coarse = surface_at(fine, 32)
@@ -76,7 +76,7 @@ def test_the_default_scene_burns_alike_on_the_display_grid_and_on_a_grid_half_as
     """The first 3 s of the default scene (stroke and spatula) with heat on the 512² display grid and on the 256²
     heat grid (the default): coagulated area and depth within 3 %, the state arrays at display size and the look
     nearly the same."""
-    from sims.scene import Scene
+    from sims.scene.assembly import Scene
 
     runs = {}
     for divisor in (1, 2):

@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 import trimesh
 
-from sims.cautery import MAX_SUBSTEPS
-from sims.config import REPO_ROOT
-from sims.surface import MAX_MESH_BYTES, MAX_MESH_ELEMENTS
-from tests.helpers import interruptible, plane_mesh
 from lab.__main__ import main
+from sims.heat.cautery import MAX_SUBSTEPS
+from sims.scene.config import REPO_ROOT
+from sims.surface.texels import MAX_MESH_BYTES, MAX_MESH_ELEMENTS
+from tests.helpers import interruptible, plane_mesh
 from tests.test_cli import bad, one_line, run_cli, run_limited, write_scene
 
 
@@ -117,7 +117,7 @@ def test_mesh_in_metres_warns_with_its_size(tmp_path, capsys):
 
 def _atlas_of_a_sphere(tmp_path):
     """(faces, uv) of a sphere's surface, in the order of its cache entry's names."""
-    from sims.surface import build_surface
+    from sims.surface.texels import build_surface
 
     surface = build_surface(trimesh.creation.icosphere(subdivisions=1, radius=5.0), 32)
     return surface.faces, surface.uv
@@ -125,7 +125,7 @@ def _atlas_of_a_sphere(tmp_path):
 
 def _sdf_of_a_sphere(tmp_path):
     """(grid, origin) of a ball's signed distances, in the order of its cache entry's names."""
-    from sims.instruments import mesh_sdf_grid
+    from sims.scene.instruments import mesh_sdf_grid
 
     path = tmp_path / "ball.stl"
     trimesh.creation.icosphere(subdivisions=1, radius=2.0).export(path)
@@ -135,7 +135,7 @@ def _sdf_of_a_sphere(tmp_path):
 @pytest.mark.parametrize("folder, compute, names", [("atlas", _atlas_of_a_sphere, ("faces", "uv")),
                                                     ("sdf", _sdf_of_a_sphere, ("grid", "origin"))])
 def test_truncated_cache_entry_is_recomputed(tmp_path, monkeypatch, folder, compute, names):
-    """Both on-disk caches (xatlas atlases, instrument SDFs) read through sims.backend.read_cached_npz."""
+    """Both on-disk caches (xatlas atlases, instrument SDFs) read through sims.core.backend.read_cached_npz."""
     monkeypatch.setenv("TISSUE_LAB_CACHE", str(tmp_path / "cache"))
     first = compute(tmp_path)
     [entry] = (tmp_path / "cache" / folder).iterdir()
@@ -148,7 +148,7 @@ def test_truncated_cache_entry_is_recomputed(tmp_path, monkeypatch, folder, comp
 
 
 def test_a_failed_atlas_cache_write_leaves_no_entry(tmp_path, monkeypatch):
-    from sims.surface import build_surface
+    from sims.surface.texels import build_surface
 
     monkeypatch.setenv("TISSUE_LAB_CACHE", str(tmp_path / "cache"))
 
@@ -194,7 +194,7 @@ def test_a_failed_write_leaves_the_previous_outputs(tmp_path, capsys, monkeypatc
 
 
 def test_ctrl_c_in_process_exits_130_and_keeps_the_previous_outputs(tmp_path, capsys, monkeypatch, previous_run):
-    from sims.scene import Scene
+    from sims.scene.assembly import Scene
 
     path, out, before = copy_of(previous_run, tmp_path)
     original_step = Scene.step

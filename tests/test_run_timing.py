@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from lab import runner
-from sims.config import REPO_ROOT
-from sims.scene import Scene
+from sims.scene.assembly import Scene
+from sims.scene.config import REPO_ROOT
 from tests.test_cli import write_scene
 
 
@@ -48,8 +48,8 @@ def test_a_run_without_later_steps_has_no_rate(scene, tmp_path, duration_s, firs
 def test_a_headless_run_imports_only_what_it_uses():
     """The CLI's parser lists the bench sections without importing them: a run imported the lab's session (and the
     bench's helpers) through that list."""
-    code = ("import sys\nimport lab.__main__\nlab.__main__.build_parser()\nimport lab.runner, sims.scene\n"
-            "print(sorted(name for name in ('lab.session', 'lab.app', 'lab.bench.common', 'viser', 'matplotlib') if name in sys.modules))")
+    code = ("import sys\nimport lab.__main__\nlab.__main__.build_parser()\nimport lab.runner, sims.scene.assembly\n"
+            "print(sorted(name for name in ('lab.session', 'lab.web.app', 'lab.bench.common', 'viser', 'matplotlib') if name in sys.modules))")
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO_ROOT, check=True)
     assert result.stdout.strip().splitlines()[-1] == "[]"
 
@@ -57,7 +57,7 @@ def test_a_headless_run_imports_only_what_it_uses():
 def test_texel_maps_are_built_once_per_mesh_and_size(tmp_path, monkeypatch):
     """A second build of the same mesh at the same size (and its coarser heat grid) reads the texel maps from the cache
     instead of rasterising again, and they are the same maps."""
-    from sims import surface as surfaces
+    from sims.surface import texels as surfaces
     from tests.helpers import plane_mesh
 
     monkeypatch.setenv("TISSUE_LAB_CACHE", str(tmp_path))
@@ -77,7 +77,7 @@ def test_texel_maps_are_built_once_per_mesh_and_size(tmp_path, monkeypatch):
 
 def test_the_surface_cache_keeps_within_its_bytes(tmp_path):
     """Past its bytes, the least recently used entries go."""
-    from sims.backend import prune_cache
+    from sims.core.backend import prune_cache
 
     for index, age in enumerate((30, 10, 20)):
         path = tmp_path / f"{index}.npz"
@@ -91,7 +91,7 @@ def test_stage_textures_are_resampled_once_per_file_and_size(tmp_path, monkeypat
     """A stage image read again at the same size comes from the cache, the same values; a changed file is read anew."""
     from PIL import Image
 
-    from sims import compose
+    from sims.look import compose
 
     monkeypatch.setenv("TISSUE_LAB_CACHE", str(tmp_path / "cache"))
     path = tmp_path / "stage.png"

@@ -1,17 +1,19 @@
-"""Heat across UV chart seams (sims.seams): the l = 1 mode on a sphere (DESIGN section 7), symmetry and bounds."""
+"""Heat across UV chart seams (sims.surface.seams): the l = 1 mode on a sphere (DESIGN section 7), symmetry and bounds."""
 import math
 
 import numpy as np
 import pytest
 
 from lab.bench.heat import SPHERE_RADIUS_MM, sphere_run, sphere_surface
-from sims import cautery as cautery_module
-from sims import params
-from sims.cautery import NEIGHBOURS, Cautery, direction_coefficients
-from sims.instruments import Instrument, InstrumentFields
-from sims.seams import seam_links
-from sims.surface import build_surface
+from sims.heat import cautery as cautery_module
+from sims.heat.cautery import Cautery
+from sims.scene import params
+from sims.scene.instruments import Instrument, InstrumentFields
+from sims.surface.seams import seam_links
+from sims.surface.stencil import NEIGHBOURS, direction_coefficients
+from sims.surface.texels import build_surface
 from tests.helpers import cautery_values, plane_mesh, surface_only_values, tissue_values
+
 
 @pytest.fixture(scope="module")
 def sphere():

@@ -6,7 +6,7 @@ import subprocess
 import sys
 import time
 
-from sims.config import REPO_ROOT
+from sims.scene.config import REPO_ROOT
 from tests import browser
 from tests.helpers import interruptible
 

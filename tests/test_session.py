@@ -14,9 +14,9 @@ import pytest
 import yaml
 
 from lab.session import MAX_BLEED_POINTS, MAX_PENDING, REST_DEPTH_MM, LabSession
-from sims.config import REPO_ROOT
-from sims.params import quote
-from sims.scene import Refused
+from sims.core.quoting import quote
+from sims.scene.assembly import Refused
+from sims.scene.config import REPO_ROOT
 
 HEMOSTASIS = REPO_ROOT / "scenes" / "hemostasis.yaml"
 BALL = "ball_electrode"
@@ -199,12 +199,12 @@ def test_values_that_are_not_finite_numbers_are_refused_and_the_simulation_goes_
 
 
 def test_a_live_change_past_the_heat_substep_cap_is_put_back(session, monkeypatch):
-    import sims.cautery
+    import sims.heat.cautery
 
     restart(session)
     before = session.scene.config["tissue"]["conductivity_w_mk"]
     overrides = dict(session.overrides)
-    monkeypatch.setattr(sims.cautery, "MAX_SUBSTEPS", session.scene.cautery.explicit_substeps(0.01) - 1)  # a cap already reached
+    monkeypatch.setattr(sims.heat.cautery, "MAX_SUBSTEPS", session.scene.cautery.explicit_substeps(0.01) - 1)  # a cap already reached
     session.set_parameter("tissue.conductivity_w_mk", 5.0)
     session.tick()
     assert session.scene.config["tissue"]["conductivity_w_mk"] == before and "substeps" in session.notice
@@ -321,7 +321,7 @@ def test_there_is_always_a_valid_scene(tmp_path, monkeypatch):
     def failing_once(config, arch, inputs):
         calls.append(config["name"])
         if len(calls) == 1:
-            from sims.config import ConfigError
+            from sims.scene.config import ConfigError
 
             raise ConfigError(config["scene_file"], "mesh", "the build failed after the old scene was dropped")
         return real_scene(config, arch, inputs)
@@ -339,8 +339,8 @@ def test_there_is_always_a_valid_scene(tmp_path, monkeypatch):
 def test_every_tool_a_scene_shows_starts_in_view(scene_file):
     """Every tool's body, at t = 0, inside a 1280 x 720 browser view from the lab's initial camera (viser's 75 degree
     field of view), left of the GUI panel (the right 360 px) - the spare sucker of a bleeding scene included."""
-    from lab.app import initial_view, instrument_mesh
-    from sims.instruments import local_frame
+    from lab.web.app import initial_view, instrument_mesh
+    from sims.scene.instruments import local_frame
     from tests.browser import project
 
     lab = LabSession(REPO_ROOT / "scenes" / scene_file, "cpu", overrides=("texture_size=32",))

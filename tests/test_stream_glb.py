@@ -1,4 +1,4 @@
-"""lab.stream.TextureStream without a browser: which tiles it publishes and when, and what its tile GLBs hold (the
+"""lab.web.stream.TextureStream without a browser: which tiles it publishes and when, and what its tile GLBs hold (the
 material maps, the quantized geometry, the normal ghosts). A raw websocket client (tests.raw_client) stands in for a
 browser; what the stream sends is read back from the connected client's scene."""
 from __future__ import annotations
@@ -231,7 +231,7 @@ def material_maps(height: int, width: int, seed: int = 0):
 # --- publishing: which tiles, when ----------------------------------------------------------------
 
 def test_stream_sends_only_changed_tiles_and_removes_replaced_nodes_later(server):
-    from lab.stream import TextureStream
+    from lab.web.stream import TextureStream
 
     recorder = Recorder(server)
     stream = TextureStream(server, bumpy_patch(), tiles=4, hide_after_s=0.3)
@@ -257,7 +257,7 @@ def test_stream_sends_only_changed_tiles_and_removes_replaced_nodes_later(server
 
 
 def test_stream_rate_limit_defers_changed_tiles_and_sends_their_newest_crop(server):
-    from lab.stream import TextureStream
+    from lab.web.stream import TextureStream
 
     recorder = Recorder(server)
     stream = TextureStream(server, bumpy_patch(), tiles=4, max_tiles_per_s=10.0)
@@ -294,9 +294,9 @@ def test_stream_rate_limit_defers_changed_tiles_and_sends_their_newest_crop(serv
 def test_a_planned_update_reads_only_the_blocks_it_asked_for(server):
     """TextureStream.plan: every tile changes faster than the rate limit lets go; the stream asks the maps' maker for
     the blocks of a few tiles only, the maker brings only those up to date (its maps stay stale elsewhere, as the
-    look's are when sims.scene.Scene.composite gets `wanted`), and every crop published is the newest, never a stale
+    look's are when sims.scene.assembly.Scene.composite gets `wanted`), and every crop published is the newest, never a stale
     one. Once the changes stop, every tile ends up published with the newest texture."""
-    from lab.stream import TextureStream
+    from lab.web.stream import TextureStream
 
     now, block = [0.0], 8
     stream = TextureStream(server, bumpy_patch(), tiles=4, max_tiles_per_s=8.0, settle_s=0.0, clock=lambda: now[0])
@@ -329,7 +329,7 @@ def test_a_planned_update_does_not_pass_over_a_tile_a_change_reaches_again(serve
     """A tile the stream examined and found unchanged (pending work that changed no texel) is examined again when a
     change reaches it, though six other tiles keep changing and the budget is two tiles an update: a burn starting
     there is published within the rate limit's turn (one tile a second here), not passed over for good."""
-    from lab.stream import TextureStream
+    from lab.web.stream import TextureStream
 
     now, block = [0.0], 8
     stream = TextureStream(server, bumpy_patch(), tiles=4, max_tiles_per_s=1.0, settle_s=0.0, clock=lambda: now[0])
@@ -371,7 +371,7 @@ def test_a_planned_update_does_not_pass_over_a_tile_a_change_reaches_again(serve
 def test_stream_rate_limit_follows_the_clock_it_is_given(server):
     """A bench passes the simulated time as the clock: the stream then publishes per simulated second what the lab
     publishes per second, however fast or slow the machine runs (lab.bench.common.lab_stream)."""
-    from lab.stream import TextureStream
+    from lab.web.stream import TextureStream
 
     now = [0.0]
     stream = TextureStream(server, bumpy_patch(), tiles=4, max_tiles_per_s=8.0, settle_s=0.0, clock=lambda: now[0])
@@ -393,7 +393,7 @@ def test_stream_compares_only_the_blocks_its_maker_flags_and_keeps_deferred_tile
     """update(changed=(tile, flags)): texels outside the flagged blocks are taken as unchanged (the scene knows what it
     recomposed), so a change there is not looked at; a flagged tile the rate limit defers is still sent later, when
     nothing is flagged any more."""
-    from lab.stream import TextureStream
+    from lab.web.stream import TextureStream
 
     Recorder(server)
     stream = TextureStream(server, bumpy_patch(), tiles=4, max_tiles_per_s=2.0, settle_s=0.0)
@@ -420,7 +420,7 @@ def test_stream_compares_only_the_blocks_its_maker_flags_and_keeps_deferred_tile
 def test_stream_sends_the_largest_change_first_and_lets_faint_changes_settle(server):
     """With one tile's budget: a fresh burn goes before a tile that changed less; a one-level change (tissue cooling)
     waits settle_s and then goes too."""
-    from lab.stream import TextureStream
+    from lab.web.stream import TextureStream
 
     recorder = Recorder(server)
     stream = TextureStream(server, bumpy_patch(), tiles=4, max_tiles_per_s=2.0, settle_s=1.0)  # one token per 0.5 s
@@ -450,7 +450,7 @@ def test_stream_sends_the_largest_change_first_and_lets_faint_changes_settle(ser
 
 @pytest.mark.parametrize("kind", ["normal", "roughness"])
 def test_a_tile_whose_only_change_is_in_a_material_map_is_published_with_only_that_map_encoded_again(server, kind):
-    from lab.stream import TextureStream
+    from lab.web.stream import TextureStream
 
     recorder = Recorder(server)
     stream = TextureStream(server, bumpy_patch(), tiles=4)
@@ -477,7 +477,7 @@ def test_a_tile_whose_only_change_is_in_a_material_map_is_published_with_only_th
 
 
 def test_update_checks_every_map_and_names_the_one_that_does_not_fit(server):
-    from lab.stream import TextureStream
+    from lab.web.stream import TextureStream
 
     stream = TextureStream(server, bumpy_patch(), tiles=2)
     rgb = np.zeros((32, 32, 3), np.uint8)
@@ -497,7 +497,7 @@ def test_update_checks_every_map_and_names_the_one_that_does_not_fit(server):
 # --- what a tile GLB holds ------------------------------------------------------------------------
 
 def test_without_maps_a_tile_has_one_texture_and_the_constant_roughness(server):
-    from lab.stream import TextureStream
+    from lab.web.stream import TextureStream
 
     recorder = Recorder(server)
     stream = TextureStream(server, bumpy_patch(), tiles=2, roughness=0.55)
@@ -521,8 +521,8 @@ def test_tile_glb_has_the_maps_crops_quantized_geometry_and_exact_ghosts(server,
     half a quantum of the mesh; normalized uint16 UVs that put each vertex on its own texel; ghost corners that the
     morph target puts exactly onto their vertex; and normals, as three.js recomputes them per tile, equal to the
     whole mesh's welded at seams."""
-    from lab.stream import TextureStream
-    from sims.surface import welded_normal_sums
+    from lab.web.stream import TextureStream
+    from sims.surface.texels import welded_normal_sums
 
     recorder = Recorder(server)
     surface = bumpy_patch(seam=True)
@@ -619,7 +619,7 @@ def test_tile_glb_has_the_maps_crops_quantized_geometry_and_exact_ghosts(server,
 def test_a_mesh_too_large_for_a_micrometre_grid_gets_a_coarser_one_that_still_fits_int16(server):
     """The grid's quantum comes from the mesh's extent (here 300 mm: about 5 um); positions and ghost corners fit
     int16, and positions stay within half a quantum."""
-    from lab.stream import TextureStream
+    from lab.web.stream import TextureStream
 
     surface = bumpy_patch()
     surface.vertices_mm = surface.vertices_mm * 5.0

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from sims.config import REPO_ROOT
-from sims.surface import MeshError, build_surface, load_mesh
+from sims.scene.config import REPO_ROOT
+from sims.surface.texels import MeshError, build_surface, load_mesh
 from tests.helpers import plane_mesh
 
 

@@ -1,7 +1,7 @@
 """What reaches the lab over viser's websocket from clients that behave as any web page can (tests.raw_client):
-values are not checked by viser, a foreign web page is refused (lab.origin), a client may send only what the viser
-client's widgets send (lab.client_guard), and a client that never answers or stops reading slows only itself
-(lab.stream, lab.client_sync)."""
+values are not checked by viser, a foreign web page is refused (lab.web.origin), a client may send only what the viser
+client's widgets send (lab.web.client_guard), and a client that never answers or stops reading slows only itself
+(lab.web.stream, lab.web.client_sync)."""
 from __future__ import annotations
 
 import math
@@ -107,7 +107,7 @@ def test_viser_hands_whatever_a_client_sends_to_the_callbacks(server):
 
 
 def test_a_foreign_origin_is_disconnected_before_it_learns_or_changes_anything(server):
-    from lab.origin import refuse_foreign_origins
+    from lab.web.origin import refuse_foreign_origins
 
     guard = refuse_foreign_origins(server)
     port = server.get_port()
@@ -141,7 +141,7 @@ def test_a_foreign_origin_is_disconnected_before_it_learns_or_changes_anything(s
 def test_a_real_page_from_the_server_itself_still_connects(server):
     from playwright.sync_api import sync_playwright
 
-    from lab.origin import refuse_foreign_origins
+    from lab.web.origin import refuse_foreign_origins
 
     guard = refuse_foreign_origins(server)
     with sync_playwright() as playwright:
@@ -173,7 +173,7 @@ def _patch():
 def _stream_run(server, other: str | None) -> dict:
     """Tiles a normal client receives over UPDATES updates while `other` ("silent": reads, never answers the sync
     requests; "stalled": stops reading after its first tiles; None: no one) is connected too."""
-    from lab.stream import TextureStream
+    from lab.web.stream import TextureStream
 
     normal, normal_id = _connect(server)
     extra, extra_id = _connect(server, answer_requests=other != "silent", max_queue=4) if other else (None, None)
@@ -216,7 +216,7 @@ def test_a_client_that_never_answers_or_stops_reading_slows_only_itself(server):
 
 
 def test_a_new_client_gets_every_tile_and_one_that_leaves_takes_its_nodes(server):
-    from lab.stream import TextureStream
+    from lab.web.stream import TextureStream
 
     first, first_id = _connect(server)
     stream = TextureStream(server, _patch(), tiles=TILES, hide_after_s=600.0)  # replaced nodes stay for the test
@@ -241,11 +241,11 @@ def test_a_new_client_gets_every_tile_and_one_that_leaves_takes_its_nodes(server
         first.close()
 
 
-# --- what a client may send: only what the viser client's widgets send (lab.client_guard) ------------------------
+# --- what a client may send: only what the viser client's widgets send (lab.web.client_guard) ------------------------
 
 def _messages_guard(server):
-    """The lab.client_guard.ClientGuard of this server (lab.origin installs it)."""
-    from lab import client_guard
+    """The lab.web.client_guard.ClientGuard of this server (lab.web.origin installs it)."""
+    from lab.web import client_guard
 
     return next(guard for guard in list(client_guard._GUARDS) if guard.port == server.get_port())
 
@@ -255,7 +255,7 @@ def test_malformed_frames_close_their_connection_quietly_and_are_counted(server,
     limit; a type the client sends but the lab does not use is dropped and the connection kept."""
     import socket
 
-    from lab.origin import refuse_foreign_origins
+    from lab.web.origin import refuse_foreign_origins
 
     guard = refuse_foreign_origins(server).messages
     frames = [b"\xc1", "a text frame", b"\x91" * 100_000 + b"\xc0", msgspec.msgpack.encode({"type": "NoSuchMessage"}),
@@ -281,7 +281,7 @@ def test_malformed_frames_close_their_connection_quietly_and_are_counted(server,
 def test_the_page_forbids_framing_by_other_sites(server):
     import urllib.request
 
-    from lab.origin import refuse_foreign_origins
+    from lab.web.origin import refuse_foreign_origins
 
     refuse_foreign_origins(server)
     with urllib.request.urlopen(f"http://127.0.0.1:{server.get_port()}/") as response:
@@ -292,8 +292,8 @@ def test_the_page_forbids_framing_by_other_sites(server):
 @pytest.fixture(scope="module")
 def lab():
     """A LabApp on the hemostasis scene at 128² texels; its loop runs on this thread only inside `_run`."""
-    from lab.app import LabApp
-    from sims.config import REPO_ROOT
+    from lab.web.app import LabApp
+    from sims.scene.config import REPO_ROOT
 
     app = LabApp(REPO_ROOT / "scenes" / "hemostasis.yaml", "127.0.0.1", browser.free_port(), "cpu", overrides=("texture_size=128",))
     yield app

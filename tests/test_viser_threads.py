@@ -1,8 +1,8 @@
-"""lab.viser_threads: a message buffer's event set from another thread wakes the loop's waiter through the loop."""
+"""lab.web.viser_threads: a message buffer's event set from another thread wakes the loop's waiter through the loop."""
 import asyncio
 import threading
 
-from lab.viser_threads import LoopSafeEvent, make_sends_thread_safe
+from lab.web.viser_threads import LoopSafeEvent, make_sends_thread_safe
 
 
 def test_an_event_set_from_another_thread_is_set_on_its_loop_and_wakes_the_waiter():

@@ -32,12 +32,11 @@ def main() -> int:
     args = parser.parse_args()
     sys.path.insert(0, str(args.repo.resolve()))
     sys.path.insert(1, str(REPO))
-    from lab.app import LabApp
-    from sims import backend
+    import lab
+    from lab.web.app import LabApp
+    from sims.core import backend
     from tests import browser
     from tools.measure_lab import HIDE_NOTICE_JS, canvas_box, pump, run_while, the_client
-
-    import lab
 
     print(f"the lab from {Path(lab.__file__).parent.parent}", flush=True)
     backend.init("cpu")

@@ -286,7 +286,7 @@ def charred_liver(f: dict[str, np.ndarray]) -> np.ndarray:
 
 
 def surface_map(height: np.ndarray, roughness: np.ndarray) -> np.ndarray:
-    """(n, n, 3) uint8 surface map of the look (sims.compose): red the height rescaled to 0-1, green the roughness."""
+    """(n, n, 3) uint8 surface map of the look (sims.look.compose): red the height rescaled to 0-1, green the roughness."""
     h = (height - height.min()) / max(float(np.ptp(height)), 1e-9)
     out = np.zeros(height.shape + (3,))
     out[..., 0], out[..., 1] = h, np.clip(roughness, 0.0, 1.0)

@@ -61,7 +61,7 @@ def run_while(app, job, until=None, timeout_s: float = 120.0):
 
 
 def open_lab(size: int | None, arch: str, simple_lighting: bool = False):
-    from lab.app import LabApp
+    from lab.web.app import LabApp
 
     overrides = (f"texture_size={size}",) if size else ()
     app = LabApp(REPO / "scenes" / "default.yaml", "127.0.0.1", browser.free_port(), arch, overrides=overrides)
@@ -292,7 +292,7 @@ def main() -> int:
     if not browser.have_chromium():
         print(f"error: needs Debian chromium at {browser.CHROMIUM}", file=sys.stderr)
         return 2
-    from sims import backend
+    from sims.core import backend
 
     backend.init(args.arch)  # on this (main) thread, which then runs the lab's loop
     chrome = browser.BrowserThread()

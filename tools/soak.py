@@ -2,7 +2,7 @@
 
     python tools/soak.py [--minutes 30] [--scene scenes/hemostasis.yaml] [--out runs/soak] [--seed 1]
 
-The real lab (lab.app.LabApp, `python -m lab serve`'s app) runs the scene in this process, its loop on the main
+The real lab (lab.web.app.LabApp, `python -m lab serve`'s app) runs the scene in this process, its loop on the main
 thread. Three Debian chromium pages (each its own chromium driven by Playwright on a thread of its own,
 tests.browser.BrowserThread; software WebGL, canvas at half resolution, simple lighting unless --default-lighting) each join, stay a random 20-90 s, leave,
 and join again 2-10 s later (seeded). A fourth client, tests/raw_client.py's RawClient (a websocket client that
@@ -128,10 +128,9 @@ def main() -> int:
     if not browser.have_chromium():
         print(f"error: needs Debian chromium at {browser.CHROMIUM}", file=sys.stderr)
         return 2
+    from lab.web.app import LabApp
+    from sims.core import backend
     from tests.raw_client import RawClient
-
-    from lab.app import LabApp
-    from sims import backend
 
     errors = ErrorLog()
     backend.init(args.arch)  # on this (main) thread, which then runs the lab's loop

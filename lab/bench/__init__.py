@@ -7,7 +7,7 @@ import os
 import time
 from pathlib import Path
 
-from sims import backend
+from sims.core import backend
 
 # dambreak includes the SPlisHSPlasH peer where it installs. The CLI reads this list for every command, so the sections'
 # imports wait for run(): `python -m lab run` imported lab.session and the bench's helpers through it

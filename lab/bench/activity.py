@@ -7,8 +7,8 @@ import time
 import numpy as np
 
 from lab.bench.common import TEXTURE_UPDATES_PER_S, lab_stream, pyplot, save, stream_frame
-from sims import backend
-from sims.config import REPO_ROOT
+from sims.core import backend
+from sims.scene.config import REPO_ROOT
 
 STAGES = ("cautery", "bleeding", "compose", "encoding")
 CASES = ("idle", "one tool", "two tools", "one bleed point", "four bleed points")
@@ -48,7 +48,7 @@ def case_cost(size: int, case: str, seconds: float, server) -> dict:
     tissue and bleeding), the display composed and streamed as often as the lab does to a stream without
     browsers made as the lab makes it, on simulated time (encoding: change detection and the published tiles' PNGs in
     GLBs, at most the lab's rate limit of tile versions per simulated second)."""
-    from sims.scene import Scene
+    from sims.scene.assembly import Scene
 
     scene = Scene.from_file(REPO_ROOT / "scenes" / "hemostasis.yaml", [f"texture_size={size}", *BASE])
     stream = lab_stream(server, scene, f"/activity/{size}")

@@ -4,21 +4,21 @@ import time
 
 import numpy as np
 
-from lab.bench.common import save, build_plane, pyplot, synced_seconds
-from sims.config import REPO_ROOT
+from lab.bench.common import build_plane, pyplot, save, synced_seconds
+from sims.scene.config import REPO_ROOT
 
 
 def _defaults() -> dict:
-    from sims import params
+    from sims.scene import params
 
     return {name: spec.default for name, spec in params.BLEEDING.items()}
 
 
 def disk(count: int):
-    """(sims.sph.Bleeding holding `count` particles at rest spacing in a disk on a flat plane, no gravity, default
+    """(sims.blood.particles.Bleeding holding `count` particles at rest spacing in a disk on a flat plane, no gravity, default
     parameters, stepped once to compile; the disk's positions in mm)."""
-    from lab.sph_reference import disk_positions
-    from sims.sph import Bleeding
+    from lab.reference.sph import disk_positions
+    from sims.blood.particles import Bleeding
 
     values = _defaults()
     positions = disk_positions(count, values["particle_spacing_mm"])
@@ -33,8 +33,8 @@ def disk(count: int):
 
 
 def throughput(count: int, steps: int, numpy_steps: int) -> dict:
-    """Particle-steps per second of sims.sph and of the NumPy + cKDTree step on the same particles (disk()), dt 0.01 s."""
-    from lab.sph_reference import NumpyBleeding
+    """Particle-steps per second of sims.blood.particles and of the NumPy + cKDTree step on the same particles (disk()), dt 0.01 s."""
+    from lab.reference.sph import NumpyBleeding
 
     bleeding, positions = disk(count)
     taichi_rate = count * steps / synced_seconds(lambda: bleeding.step(0.01), steps)
@@ -50,11 +50,12 @@ def throughput(count: int, steps: int, numpy_steps: int) -> dict:
 
 
 def profile(count: int, steps: int = 5) -> dict:
-    """ms per step spent in each pass of sims.sph.Bleeding.step (launched one pass per kernel here, device synchronised
+    """ms per step spent in each pass of sims.blood.particles.Bleeding.step (launched one pass per kernel here, device synchronised
     around every launch, so they are serialised), in the other kernels and in the whole step, for disk(count); 'host'
     is the step less its kernels. The step itself launches a substep's passes as one kernel."""
     import taichi as ti
-    from sims.sph import PASS_NAMES
+
+    from sims.blood.particles import PASS_NAMES
 
     bleeding, _ = disk(count)
     bleeding.separate_passes = True
@@ -91,8 +92,8 @@ def profile(count: int, steps: int = 5) -> dict:
 
 def settle(substeps: int, dt_s: float, seconds: float = 3.0) -> dict:
     """80 particles released in the hollow of the patch under gravity: density against rest density after 3 s."""
-    from sims.sph import Bleeding
-    from sims.surface import build_surface, load_mesh
+    from sims.blood.particles import Bleeding
+    from sims.surface.texels import build_surface, load_mesh
 
     surface = build_surface(load_mesh(REPO_ROOT / "static/meshes/patch.obj"), 256)
     values = dict(_defaults(), substeps=substeps)
@@ -138,7 +139,7 @@ def render(results: dict) -> list[str]:
         "## Bleeding: throughput",
         "",
         "Particles at rest spacing (0.5 mm) in a disk on a flat plane, no gravity, default parameters (2 substeps per",
-        "0.01 s step). The NumPy + scipy cKDTree version of the same step (lab/sph_reference.py) runs in the same process.",
+        "0.01 s step). The NumPy + scipy cKDTree version of the same step (lab/reference/sph.py) runs in the same process.",
         "",
         "| particles | Taichi steps/s | Taichi particle-steps/s | NumPy+cKDTree particle-steps/s | speed-up | particle fields (MB) |",
         "|---|---|---|---|---|---|",
@@ -174,7 +175,7 @@ def plot(results: dict, out_dir) -> list[str]:
     plt = pyplot()
     fig, (left, right) = plt.subplots(1, 2, figsize=(10, 3.8))
     rows = results["throughput"]
-    left.loglog([r["particles"] for r in rows], [r["taichi_particle_steps_per_s"] for r in rows], "o-", label="sims.sph (Taichi)")
+    left.loglog([r["particles"] for r in rows], [r["taichi_particle_steps_per_s"] for r in rows], "o-", label="sims.blood.particles (Taichi)")
     numpy_rows = [r for r in rows if "numpy_particle_steps_per_s" in r]
     left.loglog([r["particles"] for r in numpy_rows], [r["numpy_particle_steps_per_s"] for r in numpy_rows], "s--", label="NumPy + cKDTree")
     left.set_xlabel("particles")

@@ -1,5 +1,5 @@
-"""Bleeding methods side by side: particles (sims.sph.Bleeding, a 2D Clavet film of fixed thickness) and the height
-field (sims.height_field.HeightFieldBleeding, depth per texel through virtual pipes) on the same cases, error next to
+"""Bleeding methods side by side: particles (sims.blood.particles.Bleeding, a 2D Clavet film of fixed thickness) and the height
+field (sims.blood.height_field.HeightFieldBleeding, depth per texel through virtual pipes) on the same cases, error next to
 cost, each at a couple of resolutions (texel size for the height field, particle spacing for the particles).
 
 Cases (all choices here, none tuned to the results):
@@ -35,10 +35,10 @@ Cases (all choices here, none tuned to the results):
 - cost as the bled volume grows: one bleed point (the scene bleeding.yaml's vessel, radius 0.6 mm) at 1 ml/s on
   static/meshes/patch.obj (60 x 40 mm, blood runs off its lower edge), product defaults for both methods; wall ms per
   simulated second after 0.1, 0.3, 1 (and, full run, 3) ml bled, with the blood still on the surface, the particles alive
-  (pool from sims.sph.auto_capacity) or the height field's awake tiles and substeps.
+  (pool from sims.blood.particles.auto_capacity) or the height field's awake tiles and substeps.
 
 Physics cases (incline, hollow): blood's viscosity, clotting, drying and pinning off (they stop a film on purpose);
-everything else the product defaults (sims.params.BLEEDING / HEIGHT_FIELD, so new keys come along). Particle runs use
+everything else the product defaults (sims.scene.params.BLEEDING / HEIGHT_FIELD, so new keys come along). Particle runs use
 an interaction radius of 3 x spacing, as the default 1.5 mm for 0.5 mm.
 
 Cost: wall time of the run's steps (and feeding) after the kernels compiled, Taichi synchronised at both ends, over the
@@ -51,8 +51,9 @@ import time
 import numpy as np
 
 from lab.bench.common import grid_faces, json_finite, pyplot, save, synced_seconds
-from sims.config import REPO_ROOT
-from sims.height_field import TILE as HEIGHT_FIELD_TILE
+from lab.reference.dambreak import MARTIN_MOYCE, front_position
+from sims.blood.height_field import TILE as HEIGHT_FIELD_TILE
+from sims.scene.config import REPO_ROOT
 
 G_MM_S2 = 9810.0
 GRAVITY = (0.0, 0.0, -G_MM_S2)
@@ -68,7 +69,7 @@ HOLLOW_HALF_MM, HOLLOW_VOLUME_ML, HOLLOW_POUR_S, HOLLOW_SETTLE_S = 20.0, 0.3, 1.
 HOLLOW_WET_MM, HOLLOW_CENTRE_MM = 0.01, 1.0
 
 STRIP_MM, DAM_MM, H0_MM, RITTER_S, RITTER_DT_S = (96.0, 12.0), 32.0, 1.0, 0.15, 0.005
-FRONT_DEPTH_FRACTION, FRONT_QUANTILE = 1e-3, 0.002
+FRONT_DEPTH_FRACTION = 1e-3
 
 BLEED_RATE_ML_S, BLEED_RADIUS_MM, BLEED_AT_MM = 1.0, 0.6, (8.0, 14.0, 4.2)
 COST_STEPS, COST_CHUNKS = 20, 10     # steps timed after each mark, in chunks (the fastest counts)
@@ -87,13 +88,13 @@ COST_TEXTURE = 512                 # the display texture of the cost-growth case
 
 # --- parameters and meshes -------------------------------------------------------------------------------------------
 def height_field_params(**changes) -> dict:
-    from sims import params
+    from sims.scene import params
 
     return {**{name: spec.default for name, spec in params.HEIGHT_FIELD.items()}, **changes}
 
 
 def particle_params(spacing_mm: float, **changes) -> dict:
-    from sims import params
+    from sims.scene import params
 
     values = {name: spec.default for name, spec in params.BLEEDING.items()}
     values.update(particle_spacing_mm=spacing_mm, interaction_radius_mm=RADIUS_RATIO * spacing_mm)
@@ -130,7 +131,7 @@ def hollow_mesh(half_mm: float = HOLLOW_HALF_MM, cells: int = 40):
 def strip_surface(texel_mm: float):
     """Horizontal strip STRIP_MM in the bottom-left corner of a square texture of texel_mm texels (edges on texel
     borders): (surface, size)."""
-    from sims.surface import build_surface
+    from sims.surface.texels import build_surface
 
     length, width = STRIP_MM
     size = 2 ** int(math.ceil(math.log2(length / texel_mm - 1e-9)))
@@ -160,10 +161,10 @@ def ritter_depth(x_mm, t_s: float, h0_mm: float = H0_MM):
 
 def _model(method: str, surface, values: dict, capacity: int = 0, walls: bool = False, display=None):
     if method == "height_field":
-        from sims.height_field import HeightFieldBleeding
+        from sims.blood.height_field import HeightFieldBleeding
 
         return HeightFieldBleeding(surface, values, GRAVITY, walls=walls, display=display)
-    from sims.sph import Bleeding
+    from sims.blood.particles import Bleeding
 
     return Bleeding(surface, values, GRAVITY, capacity, walls=walls)
 
@@ -199,8 +200,8 @@ class _Clock:
 # --- incline ----------------------------------------------------------------------------------------------------------
 def incline(method: str, film_mm: float, size: int = 64, spacing_mm: float | None = None) -> dict:
     """A film fed across an incline against Nusselt's depth (module docstring)."""
-    from sims.height_field import kinematic_viscosity_mm2_s
-    from sims.surface import build_surface
+    from sims.blood.height_field import kinematic_viscosity_mm2_s
+    from sims.surface.texels import build_surface
 
     surface = build_surface(incline_mesh(), size)
     values = height_field_params(**PHYSICS_HF) if method == "height_field" else particle_params(spacing_mm, **PHYSICS_PARTICLES)
@@ -214,7 +215,7 @@ def incline(method: str, film_mm: float, size: int = 64, spacing_mm: float | Non
     feeds = [_nearest_texel(surface, (x, down_top * math.cos(slope), down_top * math.sin(slope))) for x in xs]
     capacity = 0
     if method == "particles":
-        from sims.sph import particle_volume_ml
+        from sims.blood.particles import particle_volume_ml
 
         capacity = int(1.2 * rate * INCLINE_S / particle_volume_ml(values)) + 2048
     blood = _model(method, surface, values, capacity)
@@ -277,13 +278,13 @@ def incline(method: str, film_mm: float, size: int = 64, spacing_mm: float | Non
 # --- hollow -----------------------------------------------------------------------------------------------------------
 def hollow(method: str, size: int = 64, spacing_mm: float | None = None) -> dict:
     """0.3 ml poured into the paraboloid hollow against the level pool (module docstring)."""
-    from sims.surface import build_surface
+    from sims.surface.texels import build_surface
 
     surface = build_surface(hollow_mesh(), size)
     values = height_field_params(**PHYSICS_HF) if method == "height_field" else particle_params(spacing_mm, **PHYSICS_PARTICLES)
     capacity = 0
     if method == "particles":
-        from sims.sph import particle_volume_ml
+        from sims.blood.particles import particle_volume_ml
 
         capacity = int(math.ceil(HOLLOW_VOLUME_ML / particle_volume_ml(values))) + 256
     blood = _model(method, surface, values, capacity)
@@ -378,7 +379,7 @@ def ritter(method: str, texel_mm: float = 1.0, spacing_mm: float | None = None, 
         front = float(wet.max()) if len(wet) else -DAM_MM
     else:
         x = np.sort(blood.particle_arrays()["particle_position_mm"][:, 0].astype(np.float64)) - DAM_MM
-        front = float(x[-1 - int(FRONT_QUANTILE * len(x))])
+        front = front_position(x)
         median = float(np.median(x))
     wave = (xs > -c * t) & (xs < exact_front)
     profile_error = float(np.abs(profile - ritter_depth(xs, t))[wave].mean() / H0_MM)
@@ -414,7 +415,7 @@ def martin_moyce(spacing_mm: float, substeps: int) -> dict:
     result = dambreak.simulate(spacing_mm, substeps)
     dambreak._RIGS.clear()
     error = result["error"]
-    reference = np.interp(error["T"], *np.asarray(dambreak.MARTIN_MOYCE).T) if error["points"] else np.array([])
+    reference = np.interp(error["T"], *np.asarray(MARTIN_MOYCE).T) if error["points"] else np.array([])
     relative = float(np.mean(np.abs(error["signed_a"]) / (reference - 1.0))) if error["points"] else math.nan
     return {
         "case": "dam break (Martin & Moyce)", "method": "particles", "resolution": f"{spacing_mm:g} mm spacing, {substeps} substeps/ms",
@@ -433,8 +434,8 @@ def martin_moyce(spacing_mm: float, substeps: int) -> dict:
 def cost_growth(method: str, marks_ml, divisor: int = 8, spacing_mm: float | None = None) -> dict:
     """Cost per simulated second after each bled volume in marks_ml at BLEED_RATE_ML_S on the patch at the lab's
     COST_TEXTURE display (product defaults; the height field on a grid `divisor` times coarser, as bleeding.grid_divisor)."""
-    from sims.resample import model_grid
-    from sims.surface import build_surface, load_mesh
+    from sims.surface.resample import model_grid
+    from sims.surface.texels import build_surface, load_mesh
 
     display = build_surface(load_mesh(REPO_ROOT / "static/meshes/patch.obj"), COST_TEXTURE)
     values = height_field_params(grid_divisor=divisor) if method == "height_field" else particle_params(spacing_mm)
@@ -443,7 +444,7 @@ def cost_growth(method: str, marks_ml, divisor: int = 8, spacing_mm: float | Non
     texel = float(np.median(np.linalg.norm(surface.tangent_u[surface.mask], axis=1)))
     capacity = 0
     if method == "particles":
-        from sims.sph import auto_capacity
+        from sims.blood.particles import auto_capacity
 
         duration = max(marks_ml) / BLEED_RATE_ML_S + COST_STEPS * DT_S
         capacity = auto_capacity([{"rate_ml_s": BLEED_RATE_ML_S, "path": []}], values, duration)
@@ -512,8 +513,8 @@ def render(results: dict) -> list[str]:
     lines = [
         "## Bleeding methods: particles against the height field",
         "",
-        "The same cases for both bleeding methods (`sims.sph`, a Clavet film of fixed thickness, 0.3 mm at rest density; "
-        "`sims.height_field`, depth per texel through virtual pipes), each at a couple of resolutions. Incline: a film fed "
+        "The same cases for both bleeding methods (`sims.blood.particles`, a Clavet film of fixed thickness, 0.3 mm at rest density; "
+        "`sims.blood.height_field`, depth per texel through virtual pipes), each at a couple of resolutions. Incline: a film fed "
         "across a 30° plane at the flux per width of a Nusselt film of the stated depth, volume per area in a window down "
         "the slope after 1.2 s. Hollow: 0.3 ml poured into z = r²/100 mm, 1.5 s later, against the level pool (centre "
         "depth 1.38 mm; the wetted cap's surface area 441 mm², projected 434). Dam break (Ritter): 1 mm of blood released "
@@ -564,8 +565,8 @@ def render(results: dict) -> list[str]:
 
 def _growth_notes(growth: list) -> list[str]:
     """Particle runs whose blood piles up at the bleed point (splat far above the film), against the height field."""
-    from sims import params
-    from sims.sph import MAX_CANDIDATES
+    from sims.blood.particles import MAX_CANDIDATES
+    from sims.scene import params
 
     film = params.BLEEDING["film_thickness_mm"].default
     field = [r for r in growth if r["method"] == "height_field"]

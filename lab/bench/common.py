@@ -1,8 +1,8 @@
 """Shared pieces of the benchmark sections: test surfaces, the lab's display updates, device description, plotting setup."""
 import math
 import platform
-from pathlib import Path
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -48,16 +48,16 @@ def json_finite(value):
 
 
 def build_plane(side_mm: float, size: int):
-    """A flat square of side_mm centred at the origin, rasterised at size^2 texels (sims.surface.TissueSurface)."""
-    from sims.surface import build_surface
+    """A flat square of side_mm centred at the origin, rasterised at size^2 texels (sims.surface.texels.TissueSurface)."""
+    from sims.surface.texels import build_surface
 
     return build_surface(plane_mesh(side_mm, side_mm), size)
 
 
 def lab_stream(server, scene, name: str):
-    """A lab.stream.TextureStream made as the lab makes one (lab.app: its defaults, so the same tiles, maps and rate
+    """A lab.web.stream.TextureStream made as the lab makes one (lab.web.app: its defaults, so the same tiles, maps and rate
     limit), on the scene's simulated clock: per simulated second it publishes what the lab publishes per second."""
-    from lab.stream import TextureStream
+    from lab.web.stream import TextureStream
 
     return TextureStream(server, scene.surface, name=name, clock=lambda: scene.time_s)
 

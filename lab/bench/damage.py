@@ -1,7 +1,7 @@
 """Damage: when does Omega reach 1, against the analytic Arrhenius integral, for time steps 1 ms to 50 ms."""
 
-from lab.bench.common import save, BODY_C, build_plane, pyplot
-from sims import analytic
+from lab.bench.common import BODY_C, build_plane, pyplot, save
+from lab.reference import analytic
 
 TIME_STEPS_S = (0.001, 0.002, 0.005, 0.01, 0.02, 0.05)
 
@@ -9,9 +9,9 @@ TIME_STEPS_S = (0.001, 0.002, 0.005, 0.01, 0.02, 0.05)
 def _cautery(tip_c: float | None, start_c: float):
     """A 4 x 4 mm liver plane of one insulated 1 mm layer at start_c with no perfusion; with tip_c, a huge energized ball
     touches every texel (the layer then relaxes toward tip_c at Cautery.contact_rate_1_s)."""
-    from sims import params
-    from sims.cautery import SURFACE_ONLY, Cautery
-    from sims.instruments import Instrument, InstrumentFields
+    from sims.heat.cautery import SURFACE_ONLY, Cautery
+    from sims.scene import params
+    from sims.scene.instruments import Instrument, InstrumentFields
 
     surface = build_plane(4.0, 16)
     tissue = dict(params.TISSUE_PRESETS["liver"], perfusion_1_s=0.0, initial_temperature_c=start_c)

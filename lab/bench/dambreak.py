@@ -1,4 +1,4 @@
-"""Dam break: our blood SPH (sims.sph.Bleeding, Clavet double density relaxation in texture space) against
+"""Dam break: our blood SPH (sims.blood.particles.Bleeding, Clavet double density relaxation in texture space) against
 Martin & Moyce 1952, with the error next to the cost.
 
 Set-up (all choices here, none tuned to the data):
@@ -44,6 +44,7 @@ import time
 import numpy as np
 
 from lab.bench.common import json_finite
+from lab.reference.dambreak import FRONT_QUANTILE, MARTIN_MOYCE, front_error, front_position, martin_moyce_front
 
 A_MM = 25.0                      # column width a
 G_MM_S2 = 9810.0
@@ -53,14 +54,9 @@ FRAME_S = 1.0e-3                 # one Bleeding.step; the front is sampled after
 RADIUS_RATIO = 3.0               # interaction radius / particle spacing
 SOUND_SPEED_MM_S = 2200.0
 SETTLE_S, SETTLE_INERTIA = 0.06, 0.95
-FRONT_QUANTILE = 0.002
 SNAPSHOT_T = (1.0, 2.0, 3.5, 5.0)
 SNAPSHOT_POINTS = 1500
 
-MARTIN_MOYCE = (
-    (0.849, 1.245), (1.212, 1.443), (1.602, 1.884), (2.283, 2.689), (2.950, 3.728),
-    (3.598, 4.528), (3.905, 4.999), (4.592, 5.841), (4.961, 6.271), (5.316, 6.717),
-)
 QUICK_RUNS = ((1.0, 2), (1.0, 4), (0.7, 4))
 FULL_RUNS = ((1.0, 2), (1.0, 4), (1.0, 8), (0.7, 4), (0.5, 4), (0.5, 8), (0.35, 8))
 FULL_SOUND_SPEEDS = (1500.0, 3000.0)   # extra runs at spacing 0.5 mm, 8 substeps
@@ -69,46 +65,6 @@ FULL_SOUND_SPEEDS = (1500.0, 3000.0)   # extra runs at spacing 0.5 mm, 8 substep
 def time_scale_1_s() -> float:
     """sqrt(2 g / a): T = t times this."""
     return math.sqrt(2.0 * G_MM_S2 / A_MM)
-
-
-def martin_moyce_front(T):
-    """Martin & Moyce's Z at T, linear between their points; NaN outside [0.849, 5.316] (no extrapolation).
-    Scalar in, float out; array in, array out."""
-    data = np.asarray(MARTIN_MOYCE, np.float64)
-    T = np.asarray(T, np.float64)
-    inside = (T >= data[0, 0]) & (T <= data[-1, 0])
-    Z = np.where(inside, np.interp(T, data[:, 0], data[:, 1]), np.nan)
-    return float(Z) if Z.ndim == 0 else Z
-
-
-def front_error(times_T, fronts_Z) -> dict:
-    """Our front (linear in T between samples) at Martin & Moyce's times inside [min T, max T] against their Z.
-
-    {points, mean_abs_a, max_abs_a, mean_signed_a (> 0: ahead of Martin & Moyce), signed_a (per point),
-    T (their times used)}, errors in units of a; NaN errors when no point lies in the range.
-    """
-    times_T, fronts_Z = np.asarray(times_T, np.float64), np.asarray(fronts_Z, np.float64)
-    order = np.argsort(times_T, kind="stable")
-    times_T, fronts_Z = times_T[order], fronts_Z[order]
-    data = np.asarray(MARTIN_MOYCE, np.float64)
-    use = data[(data[:, 0] >= times_T[0]) & (data[:, 0] <= times_T[-1])] if len(times_T) else data[:0]
-    if not len(use):
-        return {"points": 0, "mean_abs_a": math.nan, "max_abs_a": math.nan, "mean_signed_a": math.nan, "signed_a": [], "T": []}
-    signed = np.interp(use[:, 0], times_T, fronts_Z) - use[:, 1]
-    return {
-        "points": int(len(use)),
-        "mean_abs_a": float(np.abs(signed).mean()),
-        "max_abs_a": float(np.abs(signed).max()),
-        "mean_signed_a": float(signed.mean()),
-        "signed_a": [float(v) for v in signed],
-        "T": [float(v) for v in use[:, 0]],
-    }
-
-
-def front_position(x_a: np.ndarray) -> float:
-    """The front from particle x (in a, from the left wall): rank floor(FRONT_QUANTILE N) from the largest."""
-    x = np.sort(np.asarray(x_a, np.float64))
-    return float(x[-1 - int(FRONT_QUANTILE * len(x))])
 
 
 def tank_surface(texel_mm: float, chart_length_a: float = TANK_LENGTH_A):
@@ -120,7 +76,7 @@ def tank_surface(texel_mm: float, chart_length_a: float = TANK_LENGTH_A):
     """
     import trimesh
 
-    from sims.surface import build_surface
+    from sims.surface.texels import build_surface
 
     per_a = int(math.ceil(A_MM / texel_mm - 1e-9))
     texel = A_MM / per_a
@@ -150,8 +106,8 @@ def column_positions(spacing_mm: float) -> np.ndarray:
 
 def fluid_params(spacing_mm: float, substeps: int, sound_speed_mm_s: float = SOUND_SPEED_MM_S) -> dict:
     """Bleeding parameters of the dam break (see the module docstring)."""
-    from sims import params
-    from sims.sph import lattice_density
+    from sims.blood.particles import lattice_density
+    from sims.scene import params
 
     radius = RADIUS_RATIO * spacing_mm
     rho0 = lattice_density(spacing_mm, radius)
@@ -181,7 +137,7 @@ _RIGS = {}  # spacing -> (dam Bleeding, tank Bleeding, texel, size): runs at one
 
 def _rig(spacing_mm: float, values: dict):
     """The settling (chart 1a long: a dam at x = a) and release (whole tank) pools for this spacing, with `values`."""
-    from sims.sph import Bleeding
+    from sims.blood.particles import Bleeding
 
     if spacing_mm not in _RIGS:
         count = len(column_positions(spacing_mm))
@@ -314,7 +270,7 @@ def render(results: dict) -> list[str]:
         "## Dam break against Martin & Moyce (1952)",
         "",
         f"A water column a = {setup['a_mm']:.0f} mm wide and 2a high collapses in a {setup['tank_a'][0]:g}a x {setup['tank_a'][1]:g}a "
-        "tank with free-slip walls, simulated by the blood model (`sims.sph`, `walls=True`) on a vertical plane in texture space, "
+        "tank with free-slip walls, simulated by the blood model (`sims.blood.particles`, `walls=True`) on a vertical plane in texture space, "
         f"without film drag, viscosity or clotting; interaction radius {setup['radius_ratio']:g} x spacing, stiffness from a nominal sound "
         f"speed of {setup['sound_speed_mm_s'] / 1000:g} m/s; the column settled behind a dam and was cut back to 2a before release "
         "(column compression: bulk density at its bottom over that at its top, minus 1). Front: the largest x of all "

@@ -3,8 +3,8 @@ charts (seams) against cost, per texture size, time step and time-stepping schem
 import numpy as np
 
 from lab.bench import common
-from lab.bench.common import save, BODY_C, plane_mesh, pyplot, synced_seconds
-from sims import analytic
+from lab.bench.common import BODY_C, plane_mesh, pyplot, save, synced_seconds
+from lab.reference import analytic
 
 SIDE_MM = 40.0
 SIGMA_MM = 0.5
@@ -14,7 +14,7 @@ SPHERE_CONDUCTIVITY_W_MK = 5.0  # the slider's top: the mode decays 10 % per sec
 
 
 def schemes() -> tuple:
-    from sims import cautery
+    from sims.heat import cautery
 
     return tuple(getattr(cautery, "SCHEMES", ("explicit",)))
 
@@ -22,10 +22,10 @@ def schemes() -> tuple:
 def gaussian_run(size: int, dt_s: float, seconds: float, scheme: str = "explicit", u_scale: float = 1.0) -> dict:
     """A Gaussian (sigma 0.5 mm, 50 C above body) on a 40 x 40 mm liver plane, no perfusion, no tool, diffused for
     `seconds` and compared with the analytic solution. u_scale < 1 stretches texels 1/u_scale : 1 along x."""
-    from sims import params
-    from sims.cautery import SURFACE_ONLY, Cautery
-    from sims.instruments import InstrumentFields
-    from sims.surface import build_surface
+    from sims.heat.cautery import SURFACE_ONLY, Cautery
+    from sims.scene import params
+    from sims.scene.instruments import InstrumentFields
+    from sims.surface.texels import build_surface
 
     surface = build_surface(plane_mesh(SIDE_MM, SIDE_MM, u_scale=u_scale), size)
     tissue = dict(params.TISSUE_PRESETS["liver"], perfusion_1_s=0.0)
@@ -59,7 +59,7 @@ def sphere_surface(size: int):
     """An icosphere of radius SPHERE_RADIUS_MM unwrapped by xatlas (a few dozen charts: seams everywhere)."""
     import trimesh
 
-    from sims.surface import build_surface
+    from sims.surface.texels import build_surface
 
     return build_surface(trimesh.creation.icosphere(subdivisions=4, radius=SPHERE_RADIUS_MM), size)
 
@@ -67,9 +67,9 @@ def sphere_surface(size: int):
 def sphere_run(size: int, dt_s: float, seconds: float, scheme: str = "explicit") -> dict:
     """T = body + 10 cos(theta) on sphere_surface(size) (k 5 W/(m K), no perfusion) against the analytic decay of the
     l = 1 mode: the amplitude ratio measured and exact, and the relative error of the decay rate."""
-    from sims import params
-    from sims.cautery import SURFACE_ONLY, Cautery
-    from sims.instruments import InstrumentFields
+    from sims.heat.cautery import SURFACE_ONLY, Cautery
+    from sims.scene import params
+    from sims.scene.instruments import InstrumentFields
 
     surface = sphere_surface(size)
     tissue = dict(params.TISSUE_PRESETS["liver"], perfusion_1_s=0.0, conductivity_w_mk=SPHERE_CONDUCTIVITY_W_MK)
@@ -143,7 +143,7 @@ def render(results: dict) -> list[str]:
     if results.get("sphere"):
         lines += ["", f"Sphere (UV seams): the l = 1 mode cos(theta) on an xatlas-unwrapped icosphere of radius {results['sphere_radius_mm']:g} mm",
                   f"(k = {SPHERE_CONDUCTIVITY_W_MK:g} W/(m K)), dt 0.01 s for {results['seconds']} s, against the analytic decay rate",
-                  "2 alpha / R² (heat crosses the seams through sims.seams links).", "",
+                  "2 alpha / R² (heat crosses the seams through sims.surface.seams links).", "",
                   "| scheme | texels | seam links | decay rate error | ms per simulated s |", "|---|---|---|---|---|"]
         for row in results["sphere"]:
             lines.append(f"| {row['scheme']} | {row['texture_size']}² | {row['seam_links']} | {row['rate_error_rel']:+.3%} | "

@@ -10,14 +10,14 @@ import numpy as np
 
 from lab.bench import common
 from lab.bench.common import build_plane, pyplot, save
-from sims.tiles import TILE
+from sims.surface.sleep_tiles import TILE
 
 SAMPLE_TIMES_S = (2.0, 7.0, 12.0, 32.0, 62.0)
 AFTER_LIFT_OFF = SAMPLE_TIMES_S[1:]
 
 
 def _ball(tip_c: float, radius_mm: float, press_mm: float, energized: bool = True, centre=(0.0, 0.0)):
-    from sims.instruments import Instrument
+    from sims.scene.instruments import Instrument
 
     return Instrument.from_config({
         "name": "ball", "shape": {"type": "ball", "radius_mm": radius_mm, "length_mm": 1, "width_mm": 1, "thickness_mm": 1},
@@ -26,9 +26,9 @@ def _ball(tip_c: float, radius_mm: float, press_mm: float, energized: bool = Tru
 
 
 def _cautery(size: int, side_mm: float, tools: list, **cautery_changes):
-    from sims import params
-    from sims.cautery import Cautery
-    from sims.instruments import InstrumentFields
+    from sims.heat.cautery import Cautery
+    from sims.scene import params
+    from sims.scene.instruments import InstrumentFields
 
     surface = build_plane(side_mm, size)
     values = {name: spec.default for name, spec in params.CAUTERY.items()}
@@ -41,8 +41,8 @@ def _cautery(size: int, side_mm: float, tools: list, **cautery_changes):
 def ball_contact_layered(size: int = 128, side_mm: float = 12.0, tip_c: float = 250.0, contact_s: float = 2.0,
                          end_s: float = 62.0, sample_times_s=SAMPLE_TIMES_S, dt_s: float = 0.01, radius_mm: float = 1.5,
                          press_mm: float = 0.2, **cautery_changes) -> dict:
-    """The reference's contact on the layered model (sims.cautery) on a side_mm plane of size^2 texels; cautery_changes
-    override sims.params CAUTERY defaults (layers, depth_mm, sleep_tolerance_c, ...). Returns samples (t_s,
+    """The reference's contact on the layered model (sims.heat.cautery) on a side_mm plane of size^2 texels; cautery_changes
+    override sims.scene.params CAUTERY defaults (layers, depth_mm, sleep_tolerance_c, ...). Returns samples (t_s,
     surface_center_c at the texel next to the axis, coagulated_area_mm2, coagulation_depth_mm (largest),
     coagulated_volume_mm3), ms_per_step (stepping only), mean awake share of the tiles, texel_mm, top_layer_mm."""
     tool = _ball(tip_c, radius_mm, press_mm)
@@ -161,7 +161,7 @@ def run(quick: bool) -> dict:
 
 
 def render(results: dict) -> list[str]:
-    from sims import params
+    from sims.scene import params
 
     ref = results["reference"]
     default_layers = int(params.CAUTERY["layers"].default)

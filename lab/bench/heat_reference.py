@@ -39,7 +39,7 @@ import time
 
 import numpy as np
 
-GAS_CONSTANT = 8.314462618  # J/(mol K), as sims.cautery
+GAS_CONSTANT = 8.314462618  # J/(mol K), as sims.heat.cautery
 KELVIN = 273.15
 
 # Issue 10's figures for this contact, from an earlier session's run whose contact model is not recorded.
@@ -55,15 +55,15 @@ ISSUE_FIGURES = {
 
 
 def tissue_defaults() -> dict:
-    """sims.params TISSUE defaults (the liver preset), imported when called."""
-    from sims import params
+    """sims.scene.params TISSUE defaults (the liver preset), imported when called."""
+    from sims.scene import params
 
     return {name: spec.default for name, spec in params.TISSUE.items()}
 
 
 def cautery_defaults() -> dict:
-    """sims.params CAUTERY defaults (contact conductance, contact distance, ...), imported when called."""
-    from sims import params
+    """sims.scene.params CAUTERY defaults (contact conductance, contact distance, ...), imported when called."""
+    from sims.scene import params
 
     return {name: spec.default for name, spec in params.CAUTERY.items()}
 
@@ -105,7 +105,7 @@ class AxisymmetricHeat:
     r_faces_mm (nr + 1,), z_faces_mm (nz + 1,): face positions in mm, both starting at 0 (axis, surface).
     Fields: temperature_c (nz, nr) cell temperatures in C; omega (nz, nr) Arrhenius integral per cell; omega_surface
     (nr,) the same for the surface faces (z = 0), from the face temperature. Row 0 is the top (surface) row.
-    tissue: sims.params TISSUE names. far_boundary: "insulated" (zero flux through r = R_max and z = Z_max) or "body"
+    tissue: sims.scene.params TISSUE names. far_boundary: "insulated" (zero flux through r = R_max and z = Z_max) or "body"
     (those faces held at body temperature, through the half cell).
     """
 
@@ -336,7 +336,7 @@ def _split_overrides(overrides: dict):
         elif name in cautery:
             cautery[name] = float(value)
         else:
-            raise ValueError(f"unknown parameter {name!r}: not in sims.params TISSUE or CAUTERY")
+            raise ValueError(f"unknown parameter {name!r}: not in sims.scene.params TISSUE or CAUTERY")
     return tissue, cautery
 
 
@@ -352,7 +352,7 @@ def ball_contact_reference(grid_mm: float = 0.05, dt_s: float = 0.01, tip_c: flo
     lift-off on (slow cooling; Crank-Nicolson goes on across the change of step). Every sample time and the lift-off
     fall on a step (a segment between them is cut into equal steps no longer than its dt). Grid and domain: see the
     module docstring; far_boundary "insulated" or "body"; air_conductance_w_m2k (W/(m^2 K), default 0: insulated)
-    toward air_temperature_c where the ball does not touch. overrides: any sims.params TISSUE or CAUTERY name
+    toward air_temperature_c where the ball does not touch. overrides: any sims.scene.params TISSUE or CAUTERY name
     (perfusion_1_s, contact_conductance_w_m2k, contact_distance_mm, ...). Times in s, lengths in mm, temperatures in C.
 
     Returns a JSON-ready dict:

@@ -2,7 +2,7 @@
 
 Same dimensionless problem as ours: a column of width a and height 2a at the left end of a 10a x 2.5a tank,
 gravity 9.81 m/s^2, released at t = 0; the front is measured the same way (the rank rule of
-dambreak.front_position on the particles' x) and compared with Martin & Moyce 1952 (dambreak.front_error).
+lab.reference.dambreak.front_position on the particles' x) and compared with Martin & Moyce 1952 (its front_error).
 The scene is the wheel's example `DamBreakModel_2D.json` (DFSPH, volume-map walls after Bender et al. 2019,
 micropolar vorticity, CFL time step) with the tank and column changed: the column is `particles_per_a`
 particles wide, its particles two radii from the walls as in the example. It runs at the example's scale,
@@ -88,8 +88,8 @@ def available() -> bool:
 
 def run(quick: bool) -> dict:
     """Dam break in SPlisHSPlasH at each resolution; {"available": False, "reason": ...} when it cannot run."""
-    from lab.bench import dambreak
     from lab.bench.common import json_finite
+    from lab.reference import dambreak
 
     reason = _why_unavailable()
     if reason:
@@ -179,7 +179,7 @@ def simulate(per_a: int, front_quantile: float, work: Path) -> dict:
     def front(model):
         n = model.numActiveParticles()
         x = np.sort(np.array(model.getFieldBuffer("position"), copy=False)[:n, 0].astype(np.float64))
-        return x[-1 - int(front_quantile * n)] / A_M  # dambreak.front_position: same rank
+        return x[-1 - int(front_quantile * n)] / A_M  # lab.reference.dambreak.front_position: same rank
 
     def on_step():
         now = time.perf_counter()

@@ -4,8 +4,8 @@ import socket
 import time
 
 from lab.bench.common import TEXTURE_UPDATES_PER_S, lab_stream, pyplot, save, stream_frame
-from sims import backend
-from sims.config import REPO_ROOT
+from sims.core import backend
+from sims.scene.config import REPO_ROOT
 
 MODELS = ("cautery", "bleeding", "compose", "encoding")
 RUNS = 3  # each scene's cost is its fastest of this many runs: a burst of other load on the machine does not count
@@ -25,7 +25,7 @@ def scene_cost(path, seconds: float, server, preset: str = "scene file") -> dict
     (encoding = change detection and the published tiles' colour, normal and roughness PNGs in GLBs). preset: a lab
     quality preset (lab.session.QUALITY) whose overrides apply."""
     from lab.session import QUALITY, fitting_overrides, override_texts
-    from sims.scene import Scene
+    from sims.scene.assembly import Scene
 
     scene = Scene.from_file(path, override_texts(fitting_overrides(path, QUALITY[preset])))  # as the lab applies it
     scene.step()  # compile the step kernels, then the display ones

@@ -10,7 +10,7 @@ import time
 from pathlib import Path
 
 from lab.bench.common import plane_mesh, pyplot, save
-from sims.config import REPO_ROOT
+from sims.scene.config import REPO_ROOT
 
 PLANE_MM = 24.0
 SCENE = """name: idle_plane
@@ -30,8 +30,8 @@ started = time.perf_counter()
 import lab.__main__
 lab.__main__.build_parser()  # as the CLI does before it runs
 from lab import runner
-import sims.scene, sims.surface
-from sims import backend
+import sims.scene.assembly, sims.surface.texels
+from sims.core import backend
 seconds = {"imports": time.perf_counter() - started}
 
 def timed(module, name, stage):
@@ -44,11 +44,11 @@ def timed(module, name, stage):
             seconds[stage] = seconds.get(stage, 0.0) + time.perf_counter() - start
     setattr(module, name, wrapper)
 
-for module, name, stage in ((sims.scene, "load_scene_config", "scene file"), (sims.scene, "load_inputs", "mesh and textures"),
-                            (backend, "init", "Taichi start"), (sims.surface, "build_surface", "surface (texel maps)")):
+for module, name, stage in ((sims.scene.assembly, "load_scene_config", "scene file"), (sims.scene.assembly, "load_inputs", "mesh and textures"),
+                            (backend, "init", "Taichi start"), (sims.surface.texels, "build_surface", "surface (texel maps)")):
     timed(module, name, stage)
 start = time.perf_counter()
-scene = sims.scene.Scene.from_file(sys.argv[1], arch=sys.argv[3])
+scene = sims.scene.assembly.Scene.from_file(sys.argv[1], arch=sys.argv[3])
 built = time.perf_counter() - start
 seconds["models"] = built - sum(seconds[stage] for stage in ("scene file", "mesh and textures", "Taichi start", "surface (texel maps)"))
 start = time.perf_counter()
@@ -82,7 +82,7 @@ def _process(command: list[str]) -> tuple[float, str]:
 def run(quick: bool) -> dict:
     """Median seconds per stage over `runs` stage-timed processes, and the median wall of as many plain runs, after
     one of each to fill the kernel cache (a study's first run compiles; the bench measures the runs after it)."""
-    from sims import backend
+    from sims.core import backend
 
     runs = 2 if quick else 5
     arch = backend.started_arch()

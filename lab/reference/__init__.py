@@ -1,0 +1,1 @@
+"""Oracles the bench and the tests share: analytic solutions and the NumPy particle step."""

@@ -1,0 +1,1 @@
+"""The texture space of the tissue mesh: texel maps, resampling between grids, seam links, sleep tiles, ray casts and the texel-metric stencil."""

@@ -1,4 +1,4 @@
-"""Headless scene runs: steps with a progress bar, frames, and the output files of DESIGN section 4.
+"""Headless scene runs: steps with a progress bar, frames, and the output files of docs/guide/headless.md ("Outputs").
 
 Outputs are complete or absent: a run writes everything into a fresh temporary folder beside the output folder
 (`.<name>.run<pid>.<host>.<random>`), then swaps it in (the previous folder renamed aside, the new one renamed into place, the

@@ -1,7 +1,7 @@
 """Shared helpers for headless-browser checks of the viser front end (Playwright, Debian chromium).
 
 No browser download ever: Playwright drives the system chromium at CHROMIUM with software WebGL
-(SwiftShader), as DESIGN section 5 describes. Software WebGL is slow, so helpers poll instead of
+(SwiftShader), as docs/guide/tests.md "Browser tests" describes. Software WebGL is slow, so helpers poll instead of
 sleeping for fixed times.
 """
 from __future__ import annotations

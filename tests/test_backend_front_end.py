@@ -8,11 +8,11 @@ from taichi.lang.exception import TaichiSyntaxError
 
 from sims.core import backend
 
-SOURCES = Path(backend.__file__).parent
+SOURCES = Path(backend.__file__).parents[1]  # every module of sims
 
 
 def test_line_wrapper_wraps_as_textwrap():
-    lines = [line for path in sorted(SOURCES.glob("*.py")) for line in path.read_text().splitlines()]
+    lines = [line for path in sorted(SOURCES.rglob("*.py")) for line in path.read_text().splitlines()]
     hints = [" " * start + "^" * length + " " * 3 for start in (0, 4, 40, 79) for length in (0, 1, 30, 60)]
     edges = ["", " ", " " * 80, "x" * 80, "x" * 81, "a b " * 20, "a b " * 21, "\tx = 1", "x = 'é'", "a\x1cb", "a-b-c " * 14]
     wrapper, plain = backend._LineWrapper(width=80), textwrap.TextWrapper(width=80)

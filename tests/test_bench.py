@@ -24,7 +24,7 @@ def test_gaussian_reference_keeps_its_integral_and_spreads():
 def test_arrhenius_reference_matches_the_published_liver_times():
     liver = params.TISSUE_PRESETS["liver"]
     at = lambda celsius: analytic.arrhenius_time_to_omega(1.0, celsius, liver["arrhenius_ln_a"], liver["activation_energy_j_mol"])
-    assert at(60.0) == pytest.approx(3.46, rel=0.02)  # DESIGN section 7: about 3.4 s
+    assert at(60.0) == pytest.approx(3.46, rel=0.02)  # docs/model/heat.md "Damage": 3.46 s
     assert at(70.0) == pytest.approx(0.23, rel=0.1)
 
 

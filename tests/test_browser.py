@@ -253,11 +253,11 @@ def test_page_loads_from_localhost_only_and_shows_the_tissue(lab, page, tmp_path
 @needs_chromium
 def test_mesh_never_blanks_while_the_texture_streams(lab, page, tmp_path):
     lab.drive("circle", *STREAM_CENTRES["first"])
-    sent_before = lab.web.stream.client_stats(page.client_id)["tiles_sent"]
+    sent_before = lab.stream.client_stats(page.client_id)["tiles_sent"]
     # Every frame the page draws for 10 s, and on until there are 20 of them. (Screenshots would make the page
     # draw extra frames, seconds each in software WebGL while the texture streams.)
     frames = lab.run(lambda _: page.record(min_seconds=10, min_frames=20, max_seconds=60), timeout_s=60 + WAIT_TIMEOUT_S)
-    tiles_sent = lab.web.stream.client_stats(page.client_id)["tiles_sent"] - sent_before
+    tiles_sent = lab.stream.client_stats(page.client_id)["tiles_sent"] - sent_before
     assert len(frames) >= 8, f"only {len(frames)} frames drawn in 60 s while streaming"
     counts = np.array([_tissue_count(image) for image in frames])
     holes = np.array([_holes(page, image) for image in frames])
@@ -316,7 +316,7 @@ def test_a_browser_that_stops_drawing_keeps_its_tiles_until_it_has_drawn_their_s
     batch). The waits are the stream's own delay (a replaced node stays hide_after_s at least)."""
     lab.drive("circle", *STREAM_CENTRES["frozen"])
     frozen = _open(lab)
-    stream = lab.web.stream
+    stream = lab.stream
 
     def mine():
         return stream.client_stats(frozen.client_id)
@@ -377,7 +377,7 @@ def test_second_client_keeps_streaming_after_the_first_leaves(lab, page, tmp_pat
         lab.run(until=lambda: set(lab.server.get_clients()) == {page.client_id, second.client_id},
                 what="two clients (the one frozen before gone)")
         lab.run(lambda _: page.close())  # the first client leaves mid-stream
-        updates_before, sent_before = lab.web.stream.stats["updates"], lab.web.stream.client_stats(second.client_id)["tiles_sent"]
+        updates_before, sent_before = lab.stream.stats["updates"], lab.stream.client_stats(second.client_id)["tiles_sent"]
         frames = lab.run(lambda _: second.record(min_seconds=6, min_frames=6, max_seconds=60), timeout_s=60 + WAIT_TIMEOUT_S)
         assert len(frames) >= 4, f"the remaining client drew only {len(frames)} frames in 60 s"
         counts = [_tissue_count(image) for image in frames]
@@ -387,8 +387,8 @@ def test_second_client_keeps_streaming_after_the_first_leaves(lab, page, tmp_pat
         assert (holes <= 20).all(), f"holes in the mesh on the remaining client: {holes.tolist()}"
         changed = np.abs(frames[0].astype(int) - frames[-1]).max(axis=-1)
         assert (changed > 30).sum() > 20, "the remaining client stopped receiving texture updates"
-        assert lab.web.stream.stats["updates"] > updates_before + 20, "the lab's loop stalled"
-        assert lab.web.stream.client_stats(second.client_id)["tiles_sent"] > sent_before, "nothing was streamed to it"
+        assert lab.stream.stats["updates"] > updates_before + 20, "the lab's loop stalled"
+        assert lab.stream.client_stats(second.client_id)["tiles_sent"] > sent_before, "nothing was streamed to it"
         lab.run(until=lambda: set(lab.server.get_clients()) == {second.client_id}, what="the server forgetting the closed client")
     finally:
         lab.run(lambda _: second.close())

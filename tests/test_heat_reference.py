@@ -38,7 +38,7 @@ def test_heated_slab_cools_like_carslaw_and_jaeger(scheme):
 
 def test_radial_gaussian_spreads_with_the_cylindrical_metric():
     """One layer in z (insulated top and bottom), no perfusion: a Gaussian in r of variance s² (per axis) stays a
-    Gaussian of variance s² + 2 alpha t with amplitude s² / (s² + 2 alpha t) (DESIGN section 7). A flat metric (face
+    Gaussian of variance s² + 2 alpha t with amplitude s² / (s² + 2 alpha t) (docs/model/heat.md "Reference solutions"). A flat metric (face
     areas not 2 pi r dz) would spread it at the wrong rate."""
     sigma_mm, amplitude_c, seconds = 0.5, 50.0, 2.0
     tissue = dict(hr.tissue_defaults(), perfusion_1_s=0.0)
@@ -99,7 +99,7 @@ def test_temperatures_stay_between_body_and_tip_at_a_large_step(scheme, dt_s, co
 
 
 def test_arrhenius_at_constant_temperature_matches_the_closed_form():
-    """At constant 60 C Omega = t exp(ln A - Ea / (R T)): 1 after about 3.46 s (DESIGN section 7: about 3.4 s); at 42 C,
+    """At constant 60 C Omega = t exp(ln A - Ea / (R T)): 1 after about 3.46 s (docs/model/heat.md "Damage": 3.46 s); at 42 C,
     under the 43 C threshold, no damage."""
     hot = column(0.5, depth_mm=2.0, perfusion_1_s=0.0, initial_temperature_c=60.0)
     tissue = hot.tissue

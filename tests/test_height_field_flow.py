@@ -6,7 +6,7 @@ lake at rest for 10,000 steps.
 The film runs in a U channel (an inclined floor between two walls standing on it, one UV chart): the walls hold the
 blood at the sides, the lower end is an open border (an outfall), so far from the feed and the outlet the film is
 uniform and its depth is Nusselt's h = (3 nu q / (g sin theta))^(1/3) for the flux q per unit width fed at the top
-(DESIGN section 7)."""
+(docs/model/blood.md "Reference solutions and data")."""
 import math
 from pathlib import Path
 
@@ -154,7 +154,7 @@ def _forget_films():
 
 def test_film_on_an_incline_has_nusselts_depth():
     """q = 10 mm^2/s of blood at 20 mPa s (nu = 19.0 mm^2/s) on 30 degrees: h = (3 nu q / (g sin theta))^(1/3) =
-    0.488 mm and the mean velocity g sin theta h^2 / (3 nu) = q / h = 20.5 mm/s (DESIGN section 7).
+    0.488 mm and the mean velocity g sin theta h^2 / (3 nu) = q / h = 20.5 mm/s (docs/model/blood.md "Reference solutions and data").
 
     In a uniform film the scheme's balance is exactly Nusselt's (bed slope against the drag 3 nu u / h^2, flux u h), so
     what is left is the channel: the feed's standing ripple (gone 5 mm below it), the outlet's draw-down (the last

@@ -1,5 +1,5 @@
 """The look (sims.look.compose, sims.look.film): blood's colour from its thickness against the two-flux equations it solves and
-against what whole blood does to light (DESIGN section 7), the film kept on simulated time, relief and gloss in the
+against what whole blood does to light (docs/model/look.md "Blood colour"), the film kept on simulated time, relief and gloss in the
 normal and roughness maps, the dried stain."""
 import numpy as np
 import pytest
@@ -48,7 +48,7 @@ def test_the_blood_layer_solves_the_two_flux_equations(thickness_mm, ground):
 
 
 def test_a_tenth_of_a_millimetre_hides_green_and_blue_while_red_passes_millimetres():
-    """DESIGN section 7: 0.1 mm of blood already hides blue and green; red passes through millimetres (its absorption
+    """docs/model/look.md "Blood colour": 0.1 mm of blood already hides blue and green; red passes through millimetres (its absorption
     alone; with blood's scattering, about one). Over white."""
     white = np.ones(3)
     film = layer(white, 0.1)

@@ -124,7 +124,7 @@ def test_the_cli_ends_without_teardown_yet_keeps_its_kernels_output_and_exit_cod
     """lab.__main__.exit_now skips the interpreter's teardown (0.2-0.3 s of a short run) but still finalizes Taichi,
     which is what writes a newly compiled kernel into the offline cache, runs the exit handlers and flushes what was
     printed; the exit code is the one given."""
-    code = ("import atexit, sys\nfrom lab.__main__ import exit_now\nfrom sims import backend\nbackend.init('cpu')\n"
+    code = ("import atexit, sys\nfrom lab.__main__ import exit_now\nfrom sims.core import backend\nbackend.init('cpu')\n"
             "import taichi as ti\nvalues = ti.field(ti.f32, 4)\n@ti.kernel\ndef double():\n"
             "    for i in values:\n        values[i] = 2.0 * i\ndouble()\n"
             "atexit.register(lambda: print('exit handler ran'))\nprint('printed', end='')\nsys.stderr.write('told')\nexit_now(3)\n")

@@ -1,4 +1,4 @@
-"""Heat across UV chart seams (sims.surface.seams): the l = 1 mode on a sphere (DESIGN section 7), symmetry and bounds."""
+"""Heat across UV chart seams (sims.surface.seams): the l = 1 mode on a sphere (docs/model/heat.md "Reference solutions"), symmetry and bounds."""
 import math
 
 import numpy as np

@@ -1,4 +1,4 @@
-"""Screenshots of the lab's look in Debian chromium, for the README (not part of the test suite).
+"""Screenshots of the lab's look in Debian chromium, for the docs (not part of the test suite).
 
     python tools/look_shots.py --scene scenes/bleeding.yaml --at 6 --out docs/look/bleeding [--repo DIR]
 

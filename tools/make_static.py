@@ -31,7 +31,7 @@ STATIC = ROOT / "static"
 TEX_SIZE = 1024
 SEED = 20240611
 
-# Mean sRGB of each tissue state. Native liver: "liver" (108, 46, 31) (DESIGN section 7, a weak source). No measured
+# Mean sRGB of each tissue state. Native liver: "liver" (108, 46, 31) (docs/model/look.md "Healthy liver", a weak source). No measured
 # colour of coagulated liver was found; the coagulum takes the CIELAB of cooked pork (Jang et al. 2019, Food Sci Anim
 # Resour 39:756, table 5): the pale crest at the margin the interior cooked medium (L* 66.4, a* 11.0, b* 11.5), the
 # coagulum well done (57.4, 7.7, 12.6), a deep burn the well-done surface (49.9, 6.9, 15.1). The hyperaemic rim (the

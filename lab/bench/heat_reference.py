@@ -1,6 +1,6 @@
 """Heat reference: a converged 3D axisymmetric model of a ball electrode pressed into a flat liver plane (issue 10).
 
-The lab's heat model lives on the surface only; the layered model in depth (DESIGN section 8) is to be compared with
+The lab's heat model is layered in depth (docs/model/heat.md, "Layers in depth"); it is compared with
 this reference. Finite volumes in r (radius) and z (depth into the tissue) with the cylindrical metric, implicit in
 time, no Taichi.
 

@@ -1,4 +1,4 @@
-"""Analytic reference solutions (DESIGN section 7) used by tests and benchmarks."""
+"""Analytic reference solutions (docs/model/heat.md "Reference solutions", docs/model/blood.md "Reference solutions and data") used by tests and benchmarks."""
 import math
 
 import numpy as np

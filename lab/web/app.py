@@ -653,7 +653,7 @@ def serve(scene_path, host: str, port: int, arch: str, overrides=(), allowed_ori
         print(f"warning: port {port} is busy; the lab serves on port {bound} instead", file=sys.stderr, flush=True)
     if host not in LOOPBACK_HOSTS:
         print(f"warning: --host {host} serves the lab to every machine that can reach this one, with no password; for a "
-              "remote demo put a reverse proxy with authentication in front of it (see the README)", file=sys.stderr, flush=True)
+              "remote demo put a reverse proxy with authentication in front of it (see docs/guide/lab.md, 'A remote demo')", file=sys.stderr, flush=True)
     shown = f"[{host}]" if ":" in host else host
     print(f"tissue lab: http://{shown}:{bound}  ({Path(scene_path).name}, {app.scene.arch}, built in "
           f"{app.session.build_seconds[-1][1]:.1f} s); waits at t = 0 until a browser shows it; Ctrl-C stops", flush=True)

@@ -1,7 +1,7 @@
 """Stream a changing texture on a static mesh to every browser (viser) without blanking it.
 
 viser has no message that updates a mesh texture in place, and re-sending a mesh blanks it in the
-browser while the new GLB parses (DESIGN section 5). So the mesh is cut into K x K UV tiles (a
+browser while the new GLB parses (docs/model/streaming.md, "Why tiles: viser cannot update a texture"). So the mesh is cut into K x K UV tiles (a
 triangle goes to the tile of its UV centroid); every tile is its own GLB node textured with the crop
 of the texture over its UV box plus a margin. An update re-sends only the tiles whose crop changed,
 each as a NEW node added visible over the old one (the newest identical copy draws last and wins);
@@ -197,7 +197,7 @@ def _pad4(data: bytes, fill: bytes = b"\x00") -> bytes:
 class _TileGeometry:
     """One tile's triangles, its crop box in a (H, W) texture, and the GLB bytes except the images.
 
-    Geometry under KHR_mesh_quantization (DESIGN section 5): POSITION as int16 (not normalized; a 4th short pads each
+    Geometry under KHR_mesh_quantization (docs/model/streaming.md, "What a tile's GLB holds"): POSITION as int16 (not normalized; a 4th short pads each
     vertex to 8 bytes, glTF's 4-byte alignment of vertex attributes) under the node's translation and uniform scale
     (the mesh-wide _Grid), TEXCOORD_0 as normalized uint16 over the crop; NORMAL as zeros without bytes (the viser client
     recomputes the normals; without the attribute three.js would flat-shade) and no TANGENT (three.js derives the

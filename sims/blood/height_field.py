@@ -707,7 +707,7 @@ class HeightFieldBleeding:
         return np.concatenate([owned, links])
 
     def state_arrays(self, display_grid: bool = True) -> dict:
-        """blood_thickness_mm (H, W) (DESIGN: state.npz with the height field), the stain and the clot fraction, on
+        """blood_thickness_mm (H, W) (docs/guide/headless.md, "state.npz"), the stain and the clot fraction, on
         the display grid (display_grid False: on the blood's own grid)."""
         arrays = {"blood_thickness_mm": self.depth_mm().astype(np.float32), "blood_stain_mm": self.stain.to_numpy(),
                   "blood_clot": self.clot.to_numpy()}

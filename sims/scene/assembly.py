@@ -675,7 +675,7 @@ class Scene:
         return self.display_tiles.tile, self.display_tiles.take_changed()
 
     def state_arrays(self, display_grid: bool = True) -> dict:
-        """Arrays of DESIGN section 4 for the models this scene runs; display_grid False: each on its model's own grid
+        """Arrays of docs/guide/headless.md ("state.npz") for the models this scene runs; display_grid False: each on its model's own grid
         (not resampled: what a check for NaN needs, at a fraction of the cost)."""
         state = {"texel_position_mm": self.surface.position_mm, "texel_mask": self.surface.mask}
         if self.cautery is not None:

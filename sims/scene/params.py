@@ -132,7 +132,7 @@ HEIGHT_FIELD = _table(
 
 # Bleeding methods (scene key bleeding.method) and their parameter tables; the first is what a scene that names no
 # method gets: the height field, the bench's choice (it pools and thins out, within 2 % of Nusselt's film and the level
-# pool, and costs what its wetted area costs; README "Bleeding methods compared"). A scene written for the particles
+# pool, and costs what its wetted area costs; docs/model/blood.md "Choosing a method"). A scene written for the particles
 # without naming them is refused at its first particle key, with the method named.
 BLEEDING_METHODS = {"height_field": HEIGHT_FIELD, "particles": BLEEDING}
 
@@ -151,7 +151,7 @@ SUCTION = _table(
     ParamSpec("rate_ml_s", "ml/s", 1.0, 0.0, 100.0, "largest volume removed per second"),
 )
 
-# Tissue presets: physical values (DESIGN section 7). Liver: Arrhenius after the widely used
+# Tissue presets: physical values (docs/model/heat.md, "Tissue data and presets"). Liver: Arrhenius after the widely used
 # liver values; skin: Henriques' A and Ea with IT'IS-database thermal properties.
 TISSUE_PRESETS: dict[str, dict[str, float]] = {
     "liver": {name: spec.default for name, spec in TISSUE.items()},

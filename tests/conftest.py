@@ -9,7 +9,7 @@ import pytest
 os.environ.setdefault("TISSUE_LAB_QUICK_COMPILE", "1")
 
 from sims.core import backend
-from tests import browser
+from testing import browser
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -22,7 +22,7 @@ def taichi_cpu():
 
 @pytest.fixture(scope="module")
 def chrome():
-    """Debian chromium on a thread of its own (tests.browser.BrowserThread), one per test module that asks for it."""
+    """Debian chromium on a thread of its own (testing.browser.BrowserThread), one per test module that asks for it."""
     thread = browser.BrowserThread()
     yield thread
     thread.close()

@@ -4,8 +4,8 @@ scene dropdown, NaN and inf, unknown presets, poses, clicks) is refused while th
 
 One LabApp for the module on the hemostasis scene at 128² texels. Its simulation loop runs on this (main) thread, only
 while a test waits in `in_browser`/`lab.run`: Taichi compiles a rebuilt scene only on the thread that started it.
-Hostile clients are raw websockets (tests/raw_client.py); the browser is Debian chromium on a thread of its own
-(tests.browser.BrowserThread). Every wait is for a condition, with timeouts sized for a loaded 2-core machine.
+Hostile clients are raw websockets (testing/raw_client.py); the browser is Debian chromium on a thread of its own
+(testing.browser.BrowserThread). Every wait is for a condition, with timeouts sized for a loaded 2-core machine.
 """
 import json
 import math
@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 
 from sims.scene.config import REPO_ROOT
-from tests import browser
-from tests.raw_client import RawClient
+from testing import browser
+from testing.raw_client import RawClient
 
 needs_chromium = pytest.mark.skipif(not browser.have_chromium(), reason=f"needs Debian chromium at {browser.CHROMIUM} (.ci/run installs it)")
 VIEWPORT = {"width": 1100, "height": 700}

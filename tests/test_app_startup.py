@@ -1,11 +1,11 @@
 """The browser lab's start: a page that connects while a scene builds (the first build, a rebuild, a switch) sees the
 "Building the scene" notice, then the scene, and the server lives on; the scripted clock starts only once a browser
-has drawn the whole tissue texture. Browsers are raw websockets (tests/raw_client.py) that record notifications."""
+has drawn the whole tissue texture. Browsers are raw websockets (testing/raw_client.py) that record notifications."""
 import time
 
 from sims.scene.config import REPO_ROOT
-from tests import browser
-from tests.raw_client import RawClient
+from testing import browser
+from testing.raw_client import RawClient
 
 SCENE = REPO_ROOT / "scenes" / "default.yaml"
 

@@ -8,12 +8,12 @@ import sys
 import numpy as np
 import pytest
 
+from lab.reference.meshes import plane_mesh
 from sims.blood.particles import Bleeding
 from sims.scene import params
 from sims.scene.assembly import Scene
 from sims.scene.config import REPO_ROOT, load_scene_config
 from sims.surface.texels import build_surface, load_mesh
-from tests.helpers import plane_mesh
 
 DEFAULTS = {name: spec.default for name, spec in params.BLEEDING.items()}
 GRAVITY = [0.0, 0.0, -9810.0]

@@ -8,7 +8,7 @@ drawn frame) is unambiguous in a screenshot, and simple lighting (software WebGL
 environment map and shadows). The tool's model and gizmo are hidden, so that they cover no burn. The electrode is driven
 through the session's public commands (take_over, set_energized, release), as a browser's gizmo and checkbox do.
 The lab's simulation loop runs on this (main) thread (Taichi), and only while a test waits in `Lab.run`; Chromium runs
-on a thread of its own (tests.browser.BrowserThread), where every Playwright call is made. Every wait is a condition
+on a thread of its own (testing.browser.BrowserThread), where every Playwright call is made. Every wait is a condition
 with a generous timeout (the tests must pass on 2 shared cores at a load average of 10). Each page's camera is the
 one the lab framed it with, read from the connected client.
 """
@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests import browser
+from testing import browser
 
 needs_chromium = pytest.mark.skipif(not browser.have_chromium(), reason=f"needs the Debian chromium package at {browser.CHROMIUM} (apt-get install chromium)")
 
@@ -404,7 +404,7 @@ def _material_plane():
     """A flat 40 x 40 mm plane in z = 0, u along +x and v along +y (so +v, "up" in the normal map, is +y)."""
     from types import SimpleNamespace
 
-    from tests.helpers import plane_mesh
+    from lab.reference.meshes import plane_mesh
 
     mesh = plane_mesh(40.0, 40.0, cells=16)
     return SimpleNamespace(vertices_mm=np.asarray(mesh.vertices, np.float32), faces=np.asarray(mesh.faces, np.int32),

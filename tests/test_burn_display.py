@@ -5,7 +5,7 @@ import pytest
 import taichi as ti
 import yaml
 
-from lab.bench.common import plane_mesh
+from lab.reference.meshes import plane_mesh
 from sims.heat.cautery import LOG_OMEGA_FLOOR
 from sims.scene.assembly import Scene
 from sims.scene.config import load_scene_config
@@ -13,7 +13,7 @@ from sims.scene.config import load_scene_config
 
 def held_ball(tmp_path, u_scale: float, divisor: int) -> Scene:
     """A 1.5 mm ball at 250 C pressed 0.3 mm into a 40 mm liver plane (texture 384², heat grid 384 / divisor) and held
-    2 s; u_scale 1/3 stretches texels 3:1 along x (lab.bench.common.plane_mesh)."""
+    2 s; u_scale 1/3 stretches texels 3:1 along x (lab.reference.meshes.plane_mesh)."""
     plane_mesh(40.0, 40.0, u_scale=u_scale).export(tmp_path / "plane.obj")
     scene = {"name": "held", "mesh": str(tmp_path / "plane.obj"), "texture_size": 384, "models": ["cautery"],
              "cautery": {"heat_grid_divisor": divisor},

@@ -4,10 +4,11 @@ import math
 import numpy as np
 import pytest
 
+from lab.reference.meshes import plane_mesh
 from sims.heat.cautery import GAS_CONSTANT, KELVIN, Cautery
 from sims.scene.instruments import InstrumentFields
 from sims.surface.texels import build_surface
-from tests.helpers import plane_mesh, surface_only_values, tissue_values
+from testing.helpers import surface_only_values, tissue_values
 
 
 def constant_temperature_cautery(temperature_c, **tissue_changes):

@@ -3,12 +3,13 @@ over an insulated bottom, so the layered model must spread exactly as a surface 
 import numpy as np
 import pytest
 
+from lab.reference.meshes import plane_mesh
 from sims.heat.cautery import Cautery
 from sims.scene import params
 from sims.scene.config import REPO_ROOT
 from sims.scene.instruments import Instrument, InstrumentFields
 from sims.surface.texels import build_surface, load_mesh
-from tests.helpers import plane_mesh, surface_only_values, tissue_values
+from testing.helpers import surface_only_values, tissue_values
 
 DEFAULT_SIZE = int(params.SIMULATION["texture_size"].default)
 BODY = 37.0

@@ -11,13 +11,14 @@ import yaml
 from scipy import ndimage
 
 from lab.reference import analytic
+from lab.reference.meshes import plane_mesh
 from sims.heat.cautery import CG_TOLERANCE, SCHEMES, Cautery
 from sims.scene import config
 from sims.scene.assembly import Scene
 from sims.scene.config import REPO_ROOT, ConfigError, load_scene_config
 from sims.scene.instruments import Instrument, InstrumentFields
 from sims.surface.texels import build_surface, load_mesh
-from tests.helpers import cautery_values, plane_mesh, surface_only_values, tissue_values
+from testing.helpers import cautery_values, surface_only_values, tissue_values
 
 BODY = 37.0
 

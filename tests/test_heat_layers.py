@@ -5,12 +5,13 @@ import numpy as np
 import pytest
 from scipy.special import erf
 
+from lab.reference.meshes import plane_mesh
 from sims.heat import layers
 from sims.heat.cautery import Cautery
 from sims.scene import params
 from sims.scene.instruments import Instrument, InstrumentFields
 from sims.surface.texels import build_surface
-from tests.helpers import cautery_values, plane_mesh, tissue_values
+from testing.helpers import cautery_values, tissue_values
 
 BODY = 37.0
 

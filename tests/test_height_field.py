@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 import trimesh
 
+from lab.reference.meshes import plane_mesh
 from sims.blood.height_field import HeightFieldBleeding
 from sims.scene.params import HEIGHT_FIELD
 from sims.surface.texels import build_surface
-from tests.helpers import plane_mesh
 
 DEFAULTS = {name: spec.default for name, spec in HEIGHT_FIELD.items()}
 G = 9810.0

@@ -15,10 +15,10 @@ import pytest
 import trimesh
 from scipy import ndimage
 
+from lab.reference.meshes import plane_mesh
 from sims.blood.height_field import CAPACITY_MM, kinematic_viscosity_mm2_s
 from sims.scene import params
 from sims.surface.texels import build_surface, load_mesh, surface_at
-from tests.helpers import plane_mesh
 from tests.test_height_field import (
     G,
     _forget_models,  # noqa: F401  (blood_on's models die with this module's Taichi runtime)

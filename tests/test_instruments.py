@@ -4,12 +4,13 @@ import pytest
 import taichi as ti
 import trimesh
 
+from lab.reference.meshes import plane_mesh
 from sims.heat.cautery import Cautery
 from sims.scene.assembly import Scene
 from sims.scene.config import REPO_ROOT, load_scene_config
 from sims.scene.instruments import Instrument, InstrumentFields, local_frame
 from sims.surface.texels import build_surface
-from tests.helpers import cautery_values, plane_mesh, tissue_values
+from testing.helpers import cautery_values, tissue_values
 
 
 def make_instrument(shape: dict, position=(0, 0, 0), direction=(0, 0, -1), roll=0.0, energized=True, path=()):

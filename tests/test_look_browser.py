@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from sims.scene.config import REPO_ROOT
-from tests import browser
+from testing import browser
 
 needs_chromium = pytest.mark.skipif(not browser.have_chromium(), reason=f"needs Debian chromium at {browser.CHROMIUM} (.ci/run installs it)")
 VIEWPORT = {"width": 900, "height": 700}

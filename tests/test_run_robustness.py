@@ -13,10 +13,11 @@ import pytest
 import trimesh
 
 from lab.__main__ import main
+from lab.reference.meshes import plane_mesh
 from sims.heat.cautery import MAX_SUBSTEPS
 from sims.scene.config import REPO_ROOT
 from sims.surface.texels import MAX_MESH_BYTES, MAX_MESH_ELEMENTS
-from tests.helpers import interruptible, plane_mesh
+from testing.helpers import interruptible
 from tests.test_cli import bad, one_line, run_cli, run_limited, write_scene
 
 

@@ -57,8 +57,8 @@ def test_a_headless_run_imports_only_what_it_uses():
 def test_texel_maps_are_built_once_per_mesh_and_size(tmp_path, monkeypatch):
     """A second build of the same mesh at the same size (and its coarser heat grid) reads the texel maps from the cache
     instead of rasterising again, and they are the same maps."""
+    from lab.reference.meshes import plane_mesh
     from sims.surface import texels as surfaces
-    from tests.helpers import plane_mesh
 
     monkeypatch.setenv("TISSUE_LAB_CACHE", str(tmp_path))
     size = 2 * surfaces.SURFACE_CACHE_MIN_SIZE  # the heat grid at half of it is kept too

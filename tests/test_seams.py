@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from lab.bench.heat import SPHERE_RADIUS_MM, sphere_run, sphere_surface
+from lab.reference.meshes import plane_mesh
 from sims.heat import cautery as cautery_module
 from sims.heat.cautery import Cautery
 from sims.scene import params
@@ -12,7 +13,7 @@ from sims.scene.instruments import Instrument, InstrumentFields
 from sims.surface.seams import seam_links
 from sims.surface.stencil import NEIGHBOURS, direction_coefficients
 from sims.surface.texels import build_surface
-from tests.helpers import cautery_values, plane_mesh, surface_only_values, tissue_values
+from testing.helpers import cautery_values, surface_only_values, tissue_values
 
 
 @pytest.fixture(scope="module")

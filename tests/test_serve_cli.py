@@ -7,8 +7,8 @@ import sys
 import time
 
 from sims.scene.config import REPO_ROOT
-from tests import browser
-from tests.helpers import interruptible
+from testing import browser
+from testing.helpers import interruptible
 
 
 def test_serve_warns_about_open_hosts_and_prints_the_port_it_really_bound(tmp_path):

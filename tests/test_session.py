@@ -341,7 +341,7 @@ def test_every_tool_a_scene_shows_starts_in_view(scene_file):
     field of view), left of the GUI panel (the right 360 px) - the spare sucker of a bleeding scene included."""
     from lab.web.app import initial_view, instrument_mesh
     from sims.scene.instruments import local_frame
-    from tests.browser import project
+    from testing.browser import project
 
     lab = LabSession(REPO_ROOT / "scenes" / scene_file, "cpu", overrides=("texture_size=32",))
     camera, look_at = initial_view(lab.scene.surface)

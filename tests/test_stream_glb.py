@@ -1,5 +1,5 @@
 """lab.web.stream.TextureStream without a browser: which tiles it publishes and when, and what its tile GLBs hold (the
-material maps, the quantized geometry, the normal ghosts). A raw websocket client (tests.raw_client) stands in for a
+material maps, the quantized geometry, the normal ghosts). A raw websocket client (testing.raw_client) stands in for a
 browser; what the stream sends is read back from the connected client's scene."""
 from __future__ import annotations
 
@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from tests import browser
-from tests.helpers import plane_mesh
+from lab.reference.meshes import plane_mesh
+from testing import browser
 
 SHORT, UNSIGNED_SHORT, UNSIGNED_INT, FLOAT = 5122, 5123, 5125, 5126
 _DTYPES = {5120: np.int8, 5121: np.uint8, SHORT: np.int16, UNSIGNED_SHORT: np.uint16, UNSIGNED_INT: np.uint32, FLOAT: np.float32}
@@ -174,7 +174,7 @@ def server():
     """A viser server with one connected client (a raw websocket client that answers as a browser does)."""
     import viser
 
-    from tests.raw_client import RawClient
+    from testing.raw_client import RawClient
 
     instance = viser.ViserServer(host="127.0.0.1", port=browser.free_port(), verbose=False)
     client = RawClient(instance.get_port())

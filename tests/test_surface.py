@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 import trimesh
 
+from lab.reference.meshes import plane_mesh
 from sims.scene.config import REPO_ROOT
 from sims.surface.texels import MeshError, build_surface, load_mesh
-from tests.helpers import plane_mesh
 
 
 def assert_finite_maps(surface):

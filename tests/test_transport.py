@@ -1,4 +1,4 @@
-"""What reaches the lab over viser's websocket from clients that behave as any web page can (tests.raw_client):
+"""What reaches the lab over viser's websocket from clients that behave as any web page can (testing.raw_client):
 values are not checked by viser, a foreign web page is refused (lab.web.origin), a client may send only what the viser
 client's widgets send (lab.web.client_guard), and a client that never answers or stops reading slows only itself
 (lab.web.stream, lab.web.client_sync)."""
@@ -13,9 +13,9 @@ import msgspec.msgpack
 import numpy as np
 import pytest
 
-from tests import browser
-from tests.helpers import plane_mesh
-from tests.raw_client import RawClient, pipelined_connection
+from lab.reference.meshes import plane_mesh
+from testing import browser
+from testing.raw_client import RawClient, pipelined_connection
 
 
 @pytest.fixture

@@ -35,7 +35,7 @@ def main() -> int:
     import lab
     from lab.web.app import LabApp
     from sims.core import backend
-    from tests import browser
+    from testing import browser
     from tools.measure_lab import HIDE_NOTICE_JS, canvas_box, pump, run_while, the_client
 
     print(f"the lab from {Path(lab.__file__).parent.parent}", flush=True)

@@ -37,7 +37,7 @@ sys.path.insert(0, str(REPO))
 import numpy as np  # noqa: E402
 from PIL import Image  # noqa: E402
 
-from tests import browser  # noqa: E402
+from testing import browser  # noqa: E402
 
 VIEWPORT = {"width": 1280, "height": 720}
 SPOTS_XY_MM = [(-20.0, -8.0), (-10.0, -10.0), (0.0, -10.0), (-15.0, -2.0), (-4.0, -4.0), (6.0, -9.0), (-24.0, 0.0)]

@@ -4,8 +4,8 @@
 
 The real lab (lab.web.app.LabApp, `python -m lab serve`'s app) runs the scene in this process, its loop on the main
 thread. Three Debian chromium pages (each its own chromium driven by Playwright on a thread of its own,
-tests.browser.BrowserThread; software WebGL, canvas at half resolution, simple lighting unless --default-lighting) each join, stay a random 20-90 s, leave,
-and join again 2-10 s later (seeded). A fourth client, tests/raw_client.py's RawClient (a websocket client that
+testing.browser.BrowserThread; software WebGL, canvas at half resolution, simple lighting unless --default-lighting) each join, stay a random 20-90 s, leave,
+and join again 2-10 s later (seeded). A fourth client, testing/raw_client.py's RawClient (a websocket client that
 speaks viser's protocol, answering the sync requests as a page does), presses "Run > Reset" every ~60 s, so the
 scene's script plays again and the texture keeps changing.
 
@@ -32,7 +32,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from tests import browser  # noqa: E402
+from testing import browser  # noqa: E402
 
 BROWSERS = ("A", "B", "C")
 STAY_S = (20.0, 90.0)        # a browser stays this long (uniform, seeded)
@@ -96,8 +96,8 @@ class Slot:
 
     def __init__(self, name: str):
         self.name = name
-        self.chrome = None            # its chromium (tests.browser.BrowserThread)
-        self.viewer = None            # tests.browser.Viewer while joined (used on its browser thread only)
+        self.chrome = None            # its chromium (testing.browser.BrowserThread)
+        self.viewer = None            # testing.browser.Viewer while joined (used on its browser thread only)
         self.client_id = None
         self.job = None               # a join or leave in progress (Future)
         self.next_at = 0.0            # when it joins or leaves next (monotonic s)
@@ -130,7 +130,7 @@ def main() -> int:
         return 2
     from lab.web.app import LabApp
     from sims.core import backend
-    from tests.raw_client import RawClient
+    from testing.raw_client import RawClient
 
     errors = ErrorLog()
     backend.init(args.arch)  # on this (main) thread, which then runs the lab's loop

@@ -1,12 +1,11 @@
 """Cost against activity: what a lab pays per simulated second when nothing happens, when one or two tools burn and
 when one or four vessels bleed, at several texture sizes, per stage; and what an idle `python -m lab serve` costs
 (Linux: it reads /proc)."""
-import socket
 import time
 
 import numpy as np
 
-from lab.bench.common import TEXTURE_UPDATES_PER_S, lab_stream, pyplot, save, stream_frame
+from lab.bench.common import TEXTURE_UPDATES_PER_S, free_port, lab_stream, pyplot, save, stream_frame
 from sims.core import backend
 from sims.scene.config import REPO_ROOT
 
@@ -20,11 +19,6 @@ BASE = ["instruments=[{name: ball_a, shape: {type: ball, radius_mm: 1.5}, tip_te
         f"position_mm: [0, 0, {PARKED_Z_MM}]}}, {{name: ball_b, shape: {{type: ball, radius_mm: 1.5}}, "
         f"tip_temperature_c: 250, position_mm: [5, 0, {PARKED_Z_MM}]}}]", "bleed_points=[]"]
 
-
-def _free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
 
 
 def _drive(scene, case: str, points_added: list) -> None:
@@ -90,7 +84,7 @@ def idle_lab_process(seconds: float, settle_s: float = 20.0) -> dict:
         fields = open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()
         return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
-    port = _free_port()
+    port = free_port()
     command = [sys.executable, "-m", "lab", "serve", str(REPO_ROOT / "scenes" / "default.yaml"), "--port", str(port),
                "--set", "instruments=[]"]
     lab = subprocess.Popen(command, cwd=REPO_ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -119,7 +113,7 @@ def run(quick: bool) -> dict:
 
     sizes = (256,) if quick else (256, 512, 1024)
     seconds = 0.3 if quick else 2.0
-    server = viser.ViserServer(host="127.0.0.1", port=_free_port(), verbose=False)
+    server = viser.ViserServer(host="127.0.0.1", port=free_port(), verbose=False)
     try:
         rows = [case_cost(size, case, seconds, server) for size in sizes for case in CASES]
     finally:

@@ -50,8 +50,9 @@ import time
 
 import numpy as np
 
-from lab.bench.common import grid_faces, json_finite, pyplot, save, synced_seconds
+from lab.bench.common import json_finite, pyplot, save, synced_seconds
 from lab.reference.dambreak import MARTIN_MOYCE, front_position
+from lab.reference.meshes import grid_faces
 from sims.blood.height_field import TILE as HEIGHT_FIELD_TILE
 from sims.scene.config import REPO_ROOT
 

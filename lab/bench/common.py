@@ -1,10 +1,9 @@
-"""Shared pieces of the benchmark sections: test surfaces, the lab's display updates, device description, plotting setup."""
+"""Shared pieces of the benchmark sections: a test surface, the lab's display updates, device description, plotting setup."""
 import math
 import platform
+import socket
 import time
 from pathlib import Path
-
-import numpy as np
 
 from lab.session import TEXTURE_INTERVAL_S
 
@@ -12,28 +11,11 @@ BODY_C = 37.0
 TEXTURE_UPDATES_PER_S = round(1.0 / TEXTURE_INTERVAL_S)  # display updates per (simulated) second, as the lab makes them
 
 
-def plane_mesh(width_mm: float, height_mm: float, u_scale: float = 1.0, vertical: bool = False, cells: int = 8):
-    """A flat width x height rectangle centred at the origin with UV = (x / width, y / height) in [0, 1].
-
-    vertical: the rectangle stands in the x-z plane (z up) instead of lying in x-y.
-    u_scale: only the first u_scale of the U range is used, so a texel is stretched 1/u_scale : 1 (anisotropic UVs).
-    """
-    import trimesh
-
-    n = cells + 1
-    xs, ys = np.meshgrid(np.linspace(-width_mm / 2, width_mm / 2, n), np.linspace(-height_mm / 2, height_mm / 2, n))
-    zeros = np.zeros(xs.size)
-    vertices = np.stack([xs.ravel(), zeros, ys.ravel()] if vertical else [xs.ravel(), ys.ravel(), zeros], axis=1)
-    uv = np.stack([(xs.ravel() / width_mm + 0.5) * u_scale, ys.ravel() / height_mm + 0.5], axis=1)
-    return trimesh.Trimesh(vertices, grid_faces(cells, cells), visual=trimesh.visual.TextureVisuals(uv=uv), process=False)
-
-
-def grid_faces(cells_x: int, cells_y: int) -> np.ndarray:
-    """(2 cells_x cells_y, 3) triangles of a (cells_y + 1) x (cells_x + 1) vertex grid numbered row by row."""
-    n = cells_x + 1
-    faces = [[j * n + i, j * n + i + 1, j * n + i + n + 1] for j in range(cells_y) for i in range(cells_x)]
-    faces += [[j * n + i, j * n + i + n + 1, j * n + i + n] for j in range(cells_y) for i in range(cells_x)]
-    return np.array(faces)
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 free now (the system picks it), for a lab server of a bench section or a test."""
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
 
 
 def json_finite(value):
@@ -49,6 +31,7 @@ def json_finite(value):
 
 def build_plane(side_mm: float, size: int):
     """A flat square of side_mm centred at the origin, rasterised at size^2 texels (sims.surface.texels.TissueSurface)."""
+    from lab.reference.meshes import plane_mesh
     from sims.surface.texels import build_surface
 
     return build_surface(plane_mesh(side_mm, side_mm), size)

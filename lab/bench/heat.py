@@ -3,8 +3,9 @@ charts (seams) against cost, per texture size, time step and time-stepping schem
 import numpy as np
 
 from lab.bench import common
-from lab.bench.common import BODY_C, plane_mesh, pyplot, save, synced_seconds
+from lab.bench.common import BODY_C, pyplot, save, synced_seconds
 from lab.reference import analytic
+from lab.reference.meshes import plane_mesh
 
 SIDE_MM = 40.0
 SIGMA_MM = 0.5

@@ -1,9 +1,8 @@
 """Per-scene cost: wall ms per simulated second in each model (cautery, bleeding, compose, texture encoding), so a
 scene is seen to pay only for the models it names; and how long a trainer waits for each scene to be built."""
-import socket
 import time
 
-from lab.bench.common import TEXTURE_UPDATES_PER_S, lab_stream, pyplot, save, stream_frame
+from lab.bench.common import TEXTURE_UPDATES_PER_S, free_port, lab_stream, pyplot, save, stream_frame
 from sims.core import backend
 from sims.scene.config import REPO_ROOT
 
@@ -12,11 +11,6 @@ RUNS = 3  # each scene's cost is its fastest of this many runs: a burst of other
 PRESETS = (("default.yaml", "accurate"),)  # (scene, lab quality preset) also measured under the preset (full runs)
 QUICK_BUILD_SCENE = "hemostasis.yaml"  # the one scene whose build a quick run times (the others show "-")
 
-
-def _free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
 
 
 def scene_cost(path, seconds: float, server, preset: str = "scene file") -> dict:
@@ -87,7 +81,7 @@ def run(quick: bool) -> dict:
     paths = sorted((REPO_ROOT / "scenes").glob("*.yaml"))
     built = [path for path in paths if not quick or path.name == QUICK_BUILD_SCENE]  # each build costs 20-25 s
     builds = {path.name: build_times(path) for path in built}
-    server = viser.ViserServer(host="127.0.0.1", port=_free_port(), verbose=False)
+    server = viser.ViserServer(host="127.0.0.1", port=free_port(), verbose=False)
     try:
         repeats = 1 if quick else RUNS
         runs = [(path, "scene file") for path in paths] + ([] if quick else [(REPO_ROOT / "scenes" / name, preset) for name, preset in PRESETS])

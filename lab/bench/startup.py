@@ -9,7 +9,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from lab.bench.common import plane_mesh, pyplot, save
+from lab.bench.common import pyplot, save
+from lab.reference.meshes import plane_mesh
 from sims.scene.config import REPO_ROOT
 
 PLANE_MM = 24.0

@@ -7,7 +7,8 @@ curved surface the line leaves the surface a little; the nearest texel follows i
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
+
+from sims.surface.nearest import NearestTexel
 
 
 @dataclass
@@ -28,17 +29,11 @@ class BurnSection:
 
 
 class SectionSampler:
-    """Nearest-texel lookups on one TissueSurface (the tree is built once)."""
+    """Burn cross-sections on one TissueSurface (the heat grid)."""
 
     def __init__(self, surface):
         self.surface = surface
-        rows, cols = np.nonzero(surface.mask)
-        self.texels = np.stack([rows, cols], axis=1)
-        self.tree = cKDTree(surface.position_mm[rows, cols])
-
-    def nearest(self, points_mm: np.ndarray) -> np.ndarray:
-        """(N, 2) row, column of the surface texel nearest each point (N, 3)."""
-        return self.texels[self.tree.query(points_mm)[1]]
+        self.nearest = NearestTexel(surface).query  # (N, 3) points, mm -> (N, 2) row, column
 
     def section(self, cautery, centre_mm, direction, half_length_mm: float = 4.0, samples: int = 81) -> BurnSection:
         """The cut through the texel nearest centre_mm along direction (any vector; a zero one, or one along the normal,

@@ -193,8 +193,6 @@ class Scene:
                                    scheme=config["cautery"]["scheme"])
             self.heat_display = HeatDisplay(self.cautery, resampler)
         if "bleeding" in self.models:
-            from scipy.spatial import cKDTree
-
             from sims.blood.methods import build_bleeding
             from sims.look.film import BloodFilm
             from sims.scene.bleed_points import BleedPoint
@@ -202,9 +200,9 @@ class Scene:
             self.bleeding = build_bleeding(self.surface, config)
             self.film = BloodFilm(self.bleeding)
             self.bleed_points = [BleedPoint(item) for item in config["bleed_points"]]
-            rows, cols = np.nonzero(self.surface.mask)
-            self._texels = np.stack([rows, cols], axis=1)
-            self._texel_tree = cKDTree(self.surface.position_mm[rows, cols])
+            from sims.surface.nearest import NearestTexel
+
+            self._nearest_texel = NearestTexel(self.surface)
         texel_mm = float(np.sqrt(np.median(self.surface.texel_area_mm2[self.surface.mask])))
         self.composer = Composer(config["look"]["stages"], textures, surfaces, self.surface.fill_index, texel_mm)
         heat = film = None
@@ -566,8 +564,7 @@ class Scene:
         key = tuple(float(v) for v in np.asarray(position_mm, np.float64).ravel())
         texel = self._nearest.get(key)
         if texel is None:
-            _, index = self._texel_tree.query(key)
-            texel = tuple(int(v) for v in self._texels[index])
+            texel = tuple(int(v) for v in self._nearest_texel.query(np.asarray([key]))[0])
             if len(self._nearest) >= NEAR_CACHE:
                 self._nearest.clear()
             self._nearest[key] = texel

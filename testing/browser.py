@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import io
 import queue
-import socket
 import threading
 import time
 from concurrent.futures import Future
@@ -17,6 +16,8 @@ from urllib.parse import urlparse
 
 import numpy as np
 from PIL import Image
+
+from lab.bench.common import free_port  # noqa: F401  (the tests and tools take a port for their lab from here)
 
 CHROMIUM = "/usr/bin/chromium"
 CHROMIUM_ARGS = [
@@ -34,11 +35,6 @@ LOCAL_HOSTS = {"127.0.0.1", "localhost", "::1", "[::1]"}
 def have_chromium() -> bool:
     return Path(CHROMIUM).is_file()
 
-
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
 
 
 def launch(playwright):

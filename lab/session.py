@@ -50,7 +50,9 @@ SPARE_SUCKER_SHAPE = {"type": "capsule", "radius_mm": 1.5, "length_mm": 20.0, "w
 
 
 def override_key_values(texts) -> dict:
-    """["dotted.key=value", ...] (the --set syntax) -> {dotted.key: value}."""
+    """["dotted.key=value", ...] (the --set syntax) -> {dotted.key: value}; a mapping is taken as it is."""
+    if isinstance(texts, dict):
+        return dict(texts)
     values = {}
     for text in texts:
         parts, value = parse_override(text)
@@ -65,33 +67,8 @@ def fitting_overrides(path: Path, overrides: dict) -> dict:
         return not key.startswith("bleeding.") or key == "bleeding.method"
 
     plain = {key: value for key, value in overrides.items() if general(key)}
-    table = params.BLEEDING_METHODS[load_scene_config(path, override_texts(plain))["bleeding"]["method"]]
+    table = params.BLEEDING_METHODS[load_scene_config(path, plain)["bleeding"]["method"]]
     return {key: value for key, value in overrides.items() if general(key) or key.split(".")[1] in table}
-
-
-def override_texts(overrides: dict) -> list[str]:
-    """{dotted.key: value} -> ["dotted.key=value", ...] for sims.scene.config.load_scene_config."""
-    import json
-
-    def flow(value) -> str:  # YAML flow text that reads back as the same value (YAML 1.1 reads 1e-05 as text)
-        if isinstance(value, np.generic):
-            value = value.item()
-        if isinstance(value, dict):
-            return "{" + ", ".join(f"{json.dumps(str(key))}: {flow(item)}" for key, item in value.items()) + "}"
-        if isinstance(value, (list, tuple)):
-            return "[" + ", ".join(flow(item) for item in value) + "]"
-        if isinstance(value, float):
-            if not np.isfinite(value):
-                raise ValueError(f"not a finite number: {value}")
-            mantissa, mark, exponent = repr(value).partition("e")
-            if "." not in mantissa:
-                mantissa += ".0"
-            return mantissa + mark + (exponent if not exponent or exponent[0] in "+-" else "+" + exponent)
-        if isinstance(value, Path):
-            value = str(value)
-        return json.dumps(value)
-
-    return [f"{key}={flow(value)}" for key, value in overrides.items()]
 
 
 class LabSession:
@@ -101,7 +78,8 @@ class LabSession:
     def __init__(self, scene_path, arch: str = "auto", overrides=(), scenes_dir=SCENES_DIR, wait_for_viewer: bool = False,
                  on_build=None):
         """scene_path: the scene to start with (any file the operator names; a switch later takes only files in
-        scenes_dir). overrides: `dotted.key=value` texts (as `--set`), applied on every rebuild of this scene.
+        scenes_dir). overrides: {dotted key: value} or `dotted.key=value` texts (as `--set`), applied on every rebuild of
+        this scene.
         wait_for_viewer: hold the scene at t = 0 until viewer_joined() is called. on_build: called as
         on_build(stage, scene_name, seconds, notes) with stage "start" (seconds 0) and "done" around every build (notes:
         the built scene's notes, texts)."""
@@ -481,7 +459,7 @@ class LabSession:
         self.on_build("start", name, 0.0, ())
         started = time.perf_counter()
         try:
-            config = load_scene_config(path, override_texts(fitting_overrides(path, self.overrides)))
+            config = load_scene_config(path, fitting_overrides(path, self.overrides))
             inputs = load_inputs(config)
         except ConfigError as exc:
             if first:

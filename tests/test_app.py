@@ -97,17 +97,27 @@ def enter(page, folder: str, label: str, value) -> None:
 
 # --- without a browser --------------------------------------------------------------------------
 
-def test_overrides_read_back_as_the_same_values():
+def test_overrides_as_values_build_the_scene_that_the_same_texts_build():
+    """The session hands its overrides to the scene as values (no YAML text between): the config is the one --set
+    texts give, each value of its type, and the config the scene then changes is not the caller's."""
+    import numpy as np
     import yaml
 
-    from lab.session import override_texts
-    from sims.scene.config import parse_override
+    from sims.scene.config import load_scene_config
 
-    values = {"a": 1e-05, "b": 1e16, "c": 0.02, "d": 512, "e": [1e-05, -2.5, 3.0], "f": [{"t_s": 1.0, "rate_ml_s": None}], "g": True}
-    for text, (key, value) in zip(override_texts(values), values.items()):
-        parts, read = parse_override(text)
-        assert parts == [key] and read == value and type(read) is type(value), text
-    assert yaml.safe_load("1e-05") == "1e-05"  # why: YAML 1.1 floats need a dot
+    path = REPO_ROOT / "scenes" / "hemostasis.yaml"
+    path_frames = [{"t_s": 0.0, "rate_ml_s": 0.03}, {"t_s": 2.0, "rate_ml_s": None}]
+    values = {"time_step_s": 1e-05 * 1000, "texture_size": np.int64(256), "cautery.contact_distance_mm": np.float32(0.25),
+              "gravity_mm_s2": (0.0, -1000.0, -9000.0), "bleed_points.0.path": path_frames, "cautery.scheme": "implicit"}
+    texts = ["time_step_s=0.01", "texture_size=256", f"cautery.contact_distance_mm={float(np.float32(0.25))!r}",
+             "gravity_mm_s2=[0.0, -1000.0, -9000.0]", "bleed_points.0.path=[{t_s: 0.0, rate_ml_s: 0.03}, {t_s: 2.0, rate_ml_s: null}]",
+             "cautery.scheme=implicit"]
+    from_values, from_texts = load_scene_config(path, values), load_scene_config(path, texts)
+    assert from_values == from_texts
+    assert type(from_values["texture_size"]) is int and type(from_values["cautery"]["contact_distance_mm"]) is float
+    from_values["bleed_points"][0]["path"][1]["rate_ml_s"] = 0.5  # a slider dropping keyframes changes the config
+    assert path_frames[1]["rate_ml_s"] is None
+    assert yaml.safe_load("1e-05") == "1e-05"  # why texts were fragile: YAML 1.1 floats need a dot
 
 
 def test_time_goes_on_from_where_it_is_when_the_time_step_changes(lab):

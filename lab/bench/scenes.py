@@ -18,10 +18,10 @@ def scene_cost(path, seconds: float, server, preset: str = "scene file") -> dict
     changed tiles to a TextureStream made as the lab makes it, on simulated time, on a viser server with no client
     (encoding = change detection and the published tiles' colour, normal and roughness PNGs in GLBs). preset: a lab
     quality preset (lab.session.QUALITY) whose overrides apply."""
-    from lab.session import QUALITY, fitting_overrides, override_texts
+    from lab.session import QUALITY, fitting_overrides
     from sims.scene.assembly import Scene
 
-    scene = Scene.from_file(path, override_texts(fitting_overrides(path, QUALITY[preset])))  # as the lab applies it
+    scene = Scene.from_file(path, fitting_overrides(path, QUALITY[preset]))  # as the lab applies it
     scene.step()  # compile the step kernels, then the display ones
     scene.reset()
     stream = lab_stream(server, scene, f"/bench/{path.stem}")

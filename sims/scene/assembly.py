@@ -215,7 +215,8 @@ class Scene:
 
     @classmethod
     def from_file(cls, path, overrides=(), arch: str = "auto") -> "Scene":
-        """Load, validate and build a scene file; raises ConfigError on bad input."""
+        """Load, validate and build a scene file; overrides as sims.scene.config.load_scene_config takes them ({dotted
+        key: value} or `key=value` texts). Raises ConfigError on bad input."""
         return cls(load_scene_config(path, overrides), arch)
 
     @property

@@ -525,8 +525,39 @@ def _read_scene_text(path: Path, ctx: _Context) -> str:
         ctx.fail("(file)", f"cannot read scene file: not UTF-8 text ({exc.reason} at byte {exc.start})")
 
 
-def load_scene_config(path, overrides: list[str] = ()) -> dict:
-    """Read, override and validate a scene file. Raises ConfigError naming file and key."""
+def _plain(value):
+    """An override value as YAML would have read it, in fresh containers (the scene may change its config; the
+    caller's overrides stay as they were): NumPy scalars as Python numbers, tuples as lists, paths as text."""
+    if isinstance(value, dict):
+        return {str(key): _plain(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(item) for item in value]
+    if isinstance(value, Path):
+        return str(value)
+    return value.item() if hasattr(value, "item") and not isinstance(value, (str, bytes)) else value
+
+
+def _override_items(overrides, ctx: _Context):
+    """(path parts, value) of each override: a mapping {dotted key: value} as it is, `dotted.key=value` texts (--set)
+    read as YAML."""
+    if isinstance(overrides, dict):
+        for key, value in overrides.items():
+            if not isinstance(key, str) or not key.strip():
+                ctx.fail("--set", f"an override key must be a dotted scene key, got {quote(key)}")
+            yield key.strip().split("."), _plain(value)
+        return
+    for text_override in overrides:
+        try:
+            yield parse_override(text_override)
+        except ValueError as exc:
+            ctx.fail(text_override.partition("=")[0] or "--set", str(exc))
+
+
+def load_scene_config(path, overrides: dict | list[str] = ()) -> dict:
+    """Read, override and validate a scene file. Raises ConfigError naming file and key.
+
+    overrides: {dotted key: value} (a script, the lab's session: values as YAML reads them, list items by index:
+    {"instruments.0.tip_temperature_c": 300}), or `dotted.key=value` texts as `--set` takes them."""
     path = Path(path)
     ctx = _Context(path)
     text = _read_scene_text(path, ctx)
@@ -536,11 +567,7 @@ def load_scene_config(path, overrides: list[str] = ()) -> dict:
         ctx.fail(*exc.args)
     if not isinstance(raw, dict):
         ctx.fail("(top level)", f"a scene must be a YAML mapping, got {type(raw).__name__}")
-    for text_override in overrides:
-        try:
-            parts, value = parse_override(text_override)
-        except ValueError as exc:
-            ctx.fail(text_override.partition("=")[0] or "--set", str(exc))
+    for parts, value in _override_items(overrides, ctx):
         apply_override(raw, parts, value, ctx)
     config = SCENE.validate(raw, "", ctx)
     config["scene_file"] = path.resolve()

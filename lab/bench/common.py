@@ -46,20 +46,12 @@ def lab_stream(server, scene, name: str):
 
 
 def stream_frame(scene, stream) -> tuple[float, float, int]:
-    """One display update as the lab makes it: the stream says which tiles it will read, compose those (timed by the
-    scene's profile as `compose`), copy the maps off the device, hand the changed tiles to stream. Returns (wall s
-    copying the maps, wall s in the stream, GLB bytes published)."""
-    pending = scene.pending_display_changes()
-    start = time.perf_counter()
-    wanted = stream.plan(pending)
-    planning_s = time.perf_counter() - start
-    rgb = scene.composite(wanted)
-    start = time.perf_counter()
-    maps = scene.material_maps()  # the maps' copy off the device is composing too
-    maps_s = time.perf_counter() - start
-    start = time.perf_counter()
-    sent = stream.update(rgb, *maps, changed=scene.take_display_changes())["bytes"]
-    return maps_s, time.perf_counter() - start + planning_s, sent
+    """One display update as the lab makes it (lab.web.stream.TextureStream.show, the lab's own frame path). Returns
+    (wall s copying the maps off the device, wall s in the stream, GLB bytes published); composing is timed by the
+    scene's profile as `compose`."""
+    seconds = {}
+    sent = stream.show(scene, seconds)["bytes"]
+    return seconds["copying maps"], seconds["in the stream"], sent
 
 
 def device_description(arch: str) -> dict:

@@ -200,8 +200,7 @@ class LabApp:
     def _stream_look(self) -> dict:
         """Compose the look where the stream is about to read it and stream its base colour, normal and roughness maps
         (only the tiles that changed are compared and encoded; lab.web.stream.TextureStream.plan)."""
-        rgb = self.scene.composite(self.stream.plan(self.scene.pending_display_changes()))
-        return self.stream.update(rgb, *self.scene.material_maps(), changed=self.scene.take_display_changes())
+        return self.stream.show(self.scene)
 
     def _client_connected(self, client) -> None:
         """A browser joined (a viser thread): during a build it sees the build notification, and the scene once it is

@@ -573,6 +573,26 @@ class TextureStream:
                     "removed_unconfirmed": 0}
         return {"nodes": viewer.node_count(), "pending_removals": len(viewer.retiring), **viewer.stats}
 
+    def show(self, scene, seconds: dict | None = None) -> dict:
+        """One frame of `scene` (a sims.scene.assembly.Scene) in every browser: the display tiles the scene would change
+        are planned against what this stream will read (plan), only those composed (Scene.composite), and the tiles that
+        changed compared, encoded and sent with the normal and roughness maps (update). The lab's loop and the bench
+        both call this. Returns update's stats; seconds, when given, gets the wall seconds spent "copying maps" (off the
+        device) and "in the stream" (planning and updating); composing is timed by the scene's own profile."""
+        start = time.perf_counter()
+        wanted = self.plan(scene.pending_display_changes())
+        planning_s = time.perf_counter() - start
+        rgb = scene.composite(wanted)
+        start = time.perf_counter()
+        maps = scene.material_maps()
+        maps_s = time.perf_counter() - start
+        start = time.perf_counter()
+        stats = self.update(rgb, *maps, changed=scene.take_display_changes())
+        if seconds is not None:
+            seconds["copying maps"] = maps_s
+            seconds["in the stream"] = planning_s + time.perf_counter() - start
+        return stats
+
     def update(self, rgb: np.ndarray, normal: np.ndarray | None = None, roughness: np.ndarray | None = None,
                changed: tuple[int, np.ndarray] | None = None) -> dict:
         """Publish the tiles whose maps changed since their last publication, and send every browser the tiles it

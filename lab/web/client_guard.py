@@ -54,6 +54,9 @@ def sound_pose(wxyz, position) -> bool:
         return bool(np.abs(position).max() <= POSE_LIMIT and 1e-6 < np.linalg.norm(wxyz) < math.inf)
 
 
+MAX_INT = 2**63  # whole numbers an integer input takes (msgpack encodes at most 64 bits)
+
+
 def _number(value) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool)
 
@@ -69,8 +72,8 @@ def _like(value, current) -> bool:
     or a tuple of those; viser casts it to current's type, which then cannot fail or turn a text into a number."""
     if isinstance(current, (bool, np.bool_)):
         return isinstance(value, bool)
-    if isinstance(current, numbers.Integral):
-        return _number(value) and (isinstance(value, int) or math.isfinite(value))
+    if isinstance(current, numbers.Integral):  # viser casts it to an int and sends that to every browser: one past
+        return _number(value) and -MAX_INT < value < MAX_INT  # msgpack's 64 bits broke their connections (1e308)
     if isinstance(current, numbers.Real):
         return _number(value)
     if isinstance(current, str):

@@ -107,11 +107,12 @@ def test_overrides_as_values_build_the_scene_that_the_same_texts_build():
 
     path = REPO_ROOT / "scenes" / "hemostasis.yaml"
     path_frames = [{"t_s": 0.0, "rate_ml_s": 0.03}, {"t_s": 2.0, "rate_ml_s": None}]
-    values = {"time_step_s": 1e-05 * 1000, "texture_size": np.int64(256), "cautery.contact_distance_mm": np.float32(0.25),
-              "gravity_mm_s2": (0.0, -1000.0, -9000.0), "bleed_points.0.path": path_frames, "cautery.scheme": "implicit"}
+    values = {"time_step_s": 0.01, "texture_size": np.int64(256), "cautery.contact_distance_mm": np.float32(0.25),
+              "gravity_mm_s2": (0.0, -1000.0, -9000.0), "bleed_points.0.path": path_frames, "cautery.scheme": "implicit",
+              "bleed_points.0.position_mm": np.array([1.0, -2.0, 0.5])}
     texts = ["time_step_s=0.01", "texture_size=256", f"cautery.contact_distance_mm={float(np.float32(0.25))!r}",
              "gravity_mm_s2=[0.0, -1000.0, -9000.0]", "bleed_points.0.path=[{t_s: 0.0, rate_ml_s: 0.03}, {t_s: 2.0, rate_ml_s: null}]",
-             "cautery.scheme=implicit"]
+             "cautery.scheme=implicit", "bleed_points.0.position_mm=[1.0, -2.0, 0.5]"]
     from_values, from_texts = load_scene_config(path, values), load_scene_config(path, texts)
     assert from_values == from_texts
     assert type(from_values["texture_size"]) is int and type(from_values["cautery"]["contact_distance_mm"]) is float

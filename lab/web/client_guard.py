@@ -32,6 +32,7 @@ import numpy as np
 
 POSE_LIMIT = 1e6           # |coordinate| beyond which a gizmo position is not relayed (scene units: mm in the lab)
 UNSUPPORTED_DATA = 1003    # websocket close code for a malformed frame
+MAX_INT = 2**63            # whole numbers an integer input takes (msgpack encodes at most 64 bits)
 # what the viser 1.1.1 client sends (viser/client/src: its sendMessage calls); any other type is the server's own
 BROWSER_SENDS = frozenset({
     "ViewerCameraMessage", "GuiUpdateMessage", "TransformControlsUpdateMessage", "TransformControlsDragStartMessage",
@@ -52,9 +53,6 @@ def sound_pose(wxyz, position) -> bool:
         return False
     with np.errstate(over="ignore"):
         return bool(np.abs(position).max() <= POSE_LIMIT and 1e-6 < np.linalg.norm(wxyz) < math.inf)
-
-
-MAX_INT = 2**63  # whole numbers an integer input takes (msgpack encodes at most 64 bits)
 
 
 def _number(value) -> bool:

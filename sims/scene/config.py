@@ -527,14 +527,17 @@ def _read_scene_text(path: Path, ctx: _Context) -> str:
 
 def _plain(value):
     """An override value as YAML would have read it, in fresh containers (the scene may change its config; the
-    caller's overrides stay as they were): NumPy scalars as Python numbers, tuples as lists, paths as text."""
+    caller's overrides stay as they were): NumPy scalars and arrays as Python numbers and lists, tuples as lists,
+    paths as text."""
+    if hasattr(value, "tolist") and not isinstance(value, (str, bytes)):  # NumPy, without importing it here
+        value = value.tolist()
     if isinstance(value, dict):
         return {str(key): _plain(item) for key, item in value.items()}
     if isinstance(value, (list, tuple)):
         return [_plain(item) for item in value]
     if isinstance(value, Path):
         return str(value)
-    return value.item() if hasattr(value, "item") and not isinstance(value, (str, bytes)) else value
+    return value
 
 
 def _override_items(overrides, ctx: _Context):

@@ -29,6 +29,7 @@ from sims.scene import checks
 from sims.scene.assembly import Scene, save_npz_atomic
 
 FINITE_CHECK_EVERY = 50  # steps between NaN/inf checks
+PNG_COMPRESS_LEVEL = 3  # zlib level of the PNGs written (write_png)
 _HOST = re.sub(r"[^A-Za-z0-9-]", "-", os.uname().nodename)[:32]  # in temporary folder names: pids are per host
 OUTPUTS = ("metrics.json", "final.png", "final_normal.png", "final_roughness.png", "state.npz", "frames")  # what a run writes into its folder
 
@@ -42,7 +43,9 @@ class RunInterrupted(Exception):
 
 
 def write_png(path: Path, rgb) -> None:
-    Image.fromarray(rgb).save(path, format="PNG")
+    """An (H, W, 3) or (H, W) uint8 image as PNG. zlib level 3: a 512² texture in 0.04 s, not 0.15 s as at Pillow's
+    default 6, for files 8-11 % larger."""
+    Image.fromarray(rgb).save(path, format="PNG", compress_level=PNG_COMPRESS_LEVEL)
 
 
 def _warn_blood_lost(scene: Scene, bar) -> None:
@@ -165,13 +168,14 @@ def _simulate(scene: Scene, folder: Path, total: int, frame_every: int, progress
     metrics = scene.metrics()
     metrics.update(wall_s=wall, finite=True, first_step_s=first_step, steps_per_s=_steps_per_s(total - 1, wall - (first_step or 0.0)))
     # PNG and zip compression release the GIL: the files compress side by side and while the next arrays are read
-    # (0.7 s of compression one after the other for a 512² texture; the bytes are the same)
+    # (0.7 s of compression one after the other for a 512² texture; the bytes are the same). state.npz first: the
+    # longest to compress, it does so while the look composes (0.2 s, its kernels loading)
     with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
-        writes = [pool.submit(write_png, folder / "final.png", scene.composite())]
+        writes = [pool.submit(save_npz_atomic, folder / "state.npz", scene.state_arrays())]
+        writes.append(pool.submit(write_png, folder / "final.png", scene.composite()))
         normal, roughness = scene.material_maps()
         writes += [pool.submit(write_png, folder / "final_normal.png", normal),
-                   pool.submit(write_png, folder / "final_roughness.png", roughness),
-                   pool.submit(save_npz_atomic, folder / "state.npz", scene.state_arrays())]
+                   pool.submit(write_png, folder / "final_roughness.png", roughness)]
         (folder / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
         for write in writes:
             write.result()  # a failed write raises its error (OSError) here

@@ -1,4 +1,5 @@
-"""sims.core.field_io.load: many fields set in one launch, the same values as Taichi's own from_numpy and fill."""
+"""sims.core.field_io: many fields set (load) or read (read) in one launch, the same values as Taichi's own from_numpy,
+fill and to_numpy."""
 import numpy as np
 import pytest
 import taichi as ti
@@ -34,6 +35,23 @@ def test_load_sets_what_from_numpy_and_fill_set_in_one_kernel():
     for mine, reference in zip(ours, theirs):
         assert mine.to_numpy().dtype == reference.to_numpy().dtype
         assert np.array_equal(mine.to_numpy(), reference.to_numpy())
+
+
+def test_read_returns_what_to_numpy_returns_in_one_kernel():
+    rng = np.random.default_rng(4)
+    fields = twin_fields()
+    for field in fields:
+        shape = field.to_numpy().shape
+        field.from_numpy((rng.random(shape) * 200 - 100).astype(field.to_numpy().dtype) if field.dtype != ti.u8
+                         else rng.integers(0, 256, shape).astype(np.uint8))
+    compiled = len(field_io._read_kernel._primal.compiled_kernels)
+    arrays = field_io.read(fields)
+    assert len(field_io._read_kernel._primal.compiled_kernels) == compiled + 1  # one kernel for all nine fields
+    for array, field in zip(arrays, fields):
+        reference = field.to_numpy()
+        assert array.dtype == reference.dtype and array.shape == reference.shape and np.array_equal(array, reference)
+    with pytest.raises(ValueError, match="matrix field"):
+        field_io.read([ti.Matrix.field(2, 2, ti.f32, 3)])
 
 
 def test_load_refuses_what_it_cannot_copy_exactly():

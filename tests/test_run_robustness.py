@@ -279,7 +279,8 @@ def test_ctrl_c_while_the_cli_starts_is_one_line_and_never_lost(tmp_path, module
     """Ctrl-C as the import of `module` begins (a sitecustomize hook sends the SIGINT)."""
     (tmp_path / "hook").mkdir()
     (tmp_path / "hook" / "sitecustomize.py").write_text(SIGINT_DURING_IMPORT)
-    env = {**os.environ, "SIGINT_AT_IMPORT": module, "PYTHONPATH": os.pathsep.join(filter(None, [str(tmp_path / "hook"), os.environ.get("PYTHONPATH")]))}
+    env = {**os.environ, "SIGINT_AT_IMPORT": module, "PYTHONPATH": os.pathsep.join(filter(None, [str(tmp_path / "hook"), os.environ.get("PYTHONPATH")])),
+           "TISSUE_LAB_CACHE": str(tmp_path / "cache")}  # empty: the mesh is parsed (trimesh imported) as on a first run
     out = tmp_path / "out"
     result = subprocess.run([sys.executable, "-m", "lab", "run", str(write_scene(tmp_path)), "--out", str(out), "--quiet"], capture_output=True,
                             text=True, cwd=REPO_ROOT, timeout=120, env=env, preexec_fn=interruptible)

@@ -12,7 +12,7 @@ import pytest
 from lab import runner
 from sims.scene.assembly import Scene
 from sims.scene.config import REPO_ROOT
-from tests.test_cli import write_scene
+from tests.test_cli import SMALL_SCENE, write_scene
 
 
 @pytest.fixture(scope="module")
@@ -73,6 +73,45 @@ def test_texel_maps_are_built_once_per_mesh_and_size(tmp_path, monkeypatch):
     other = plane_mesh(24.0, 12.1)  # another mesh is built, not read
     with pytest.raises(pytest.fail.Exception, match="rasterised again"):
         surfaces.build_surface(other, size)
+
+
+def test_a_scene_read_before_builds_without_trimesh_or_a_k_d_tree(tmp_path):
+    """A second process building the same scene reads its mesh, texel maps, heat taps and seam links from the cache:
+    it imports neither trimesh nor scipy.spatial (0.4-0.5 s of start-up), and builds the same scene."""
+    # large enough to be kept on disk; a mesh with seams
+    scene_file = write_scene(tmp_path, {**SMALL_SCENE, "mesh": "meshes/liver_lobe.obj", "texture_size": 512})
+    code = ("import sys\nimport numpy as np\nfrom sims.scene.assembly import Scene\n"
+            f"scene = Scene.from_file({str(scene_file)!r}, arch='cpu')\n"
+            "print([name for name in ('trimesh', 'scipy.spatial') if name in sys.modules])\n"
+            "print(float(np.asarray(scene.heat_display.resampler.weights_np, np.float64).sum()), scene.cautery.seam_links)")
+    environment = {**os.environ, "TISSUE_LAB_CACHE": str(tmp_path / "cache")}
+    runs = [subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO_ROOT, check=True,
+                           env=environment).stdout.strip().splitlines()[-2:] for _ in range(2)]
+    assert runs[0][0] == "['trimesh', 'scipy.spatial']"  # the first parses and searches
+    assert int(runs[0][1].split()[1]) > 0  # the lobe has seams: links were found, then read back
+    assert runs[1][0] == "[]"
+    assert runs[1][1] == runs[0][1]
+
+
+def test_a_mesh_file_is_parsed_again_when_its_bytes_change(tmp_path, monkeypatch):
+    """The parsed tissue mesh is kept by the file's bytes: the same file reads back the same arrays without trimesh,
+    an edited one is parsed anew."""
+    from lab.reference.meshes import plane_mesh
+    from sims.surface import texels
+
+    monkeypatch.setenv("TISSUE_LAB_CACHE", str(tmp_path / "cache"))
+    path = tmp_path / "plane.obj"
+    plane_mesh(24.0, 12.0).export(path)
+    first = texels.read_tissue_mesh(path)
+    parse = texels._parse_mesh
+    monkeypatch.setattr(texels, "_parse_mesh", lambda *args: pytest.fail("parsed again"))
+    again = texels.read_tissue_mesh(path)
+    for name in ("vertices", "faces", "uv"):
+        a, b = getattr(first, name), getattr(again, name)
+        assert a.dtype == b.dtype and np.array_equal(a, b), name
+    plane_mesh(30.0, 12.0).export(path)
+    monkeypatch.setattr(texels, "_parse_mesh", parse)
+    assert np.ptp(texels.read_tissue_mesh(path).vertices[:, 0]) == pytest.approx(30.0)
 
 
 def test_the_surface_cache_keeps_within_its_bytes(tmp_path):

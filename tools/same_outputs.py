@@ -1,5 +1,6 @@
 """Whether a change keeps the lab's outputs: every scene in scenes/ (the bleeding scenes with both methods) run headless
-by two checkouts, their state.npz, final*.png and metrics.json compared byte for byte (metrics without the timings).
+by two checkouts, their state.npz and metrics.json compared byte for byte (metrics without the timings), their final*.png
+pixel for pixel (the PNG encoder's settings are not an output).
 
     python tools/same_outputs.py OTHER_CHECKOUT [--out DIR] [--duration S]
 
@@ -12,6 +13,8 @@ import os
 import subprocess
 import sys
 from pathlib import Path
+
+from PIL import Image
 
 REPO = Path(__file__).resolve().parents[1]
 BLEEDING_METHODS = ("height_field", "particles")
@@ -39,9 +42,17 @@ def run(checkout: Path, scene: str, overrides: list[str], out: Path, duration_s:
     subprocess.run(command, cwd=checkout, check=True, env=dict(os.environ, PYTHONPATH=str(checkout)))
 
 
+def _content(path: Path):
+    """A PNG's mode, size and pixels; any other file's bytes."""
+    if path.suffix != ".png":
+        return path.read_bytes()
+    with Image.open(path) as image:
+        return image.mode, image.size, image.tobytes()
+
+
 def differences(a: Path, b: Path) -> list[str]:
     """Names of the outputs that differ between run folders a and b (metrics.json without TIMINGS)."""
-    differ = [name for name in FILES if (a / name).read_bytes() != (b / name).read_bytes()]
+    differ = [name for name in FILES if _content(a / name) != _content(b / name)]
     metrics = [json.loads((folder / "metrics.json").read_text()) for folder in (a, b)]
     for values in metrics:
         for key in TIMINGS:
@@ -65,7 +76,7 @@ def main() -> int:
             run(checkout, scene, overrides, folder, args.duration)
         differ = differences(*folders)
         same &= not differ
-        print(f"{name}: {'same bytes' if not differ else 'DIFFERENT: ' + ', '.join(differ)}", flush=True)
+        print(f"{name}: {'same outputs' if not differ else 'DIFFERENT: ' + ', '.join(differ)}", flush=True)
     return 0 if same else 1
 
 

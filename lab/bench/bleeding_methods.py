@@ -142,10 +142,6 @@ def strip_surface(texel_mm: float):
     return build_surface(_mesh(vertices, grid_faces(8, 8), uv), size), size
 
 
-def nusselt_depth_mm(q_mm2_s: float, nu_mm2_s: float, slope_deg: float = INCLINE_DEG) -> float:
-    return (3.0 * nu_mm2_s * q_mm2_s / (G_MM_S2 * math.sin(math.radians(slope_deg)))) ** (1.0 / 3.0)
-
-
 def level_pool(volume_ml: float) -> dict:
     """Level pool of volume_ml in z = r^2 / 100: centre depth, projected and surface area of the wetted cap."""
     depth = math.sqrt(2.0 * volume_ml * 1000.0 / (100.0 * math.pi))

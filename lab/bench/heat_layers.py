@@ -13,7 +13,6 @@ from lab.bench.common import build_plane, pyplot, save
 from sims.surface.sleep_tiles import TILE
 
 SAMPLE_TIMES_S = (2.0, 7.0, 12.0, 32.0, 62.0)
-AFTER_LIFT_OFF = SAMPLE_TIMES_S[1:]
 
 
 def _ball(tip_c: float, radius_mm: float, press_mm: float, energized: bool = True, centre=(0.0, 0.0)):

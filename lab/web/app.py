@@ -377,7 +377,7 @@ class LabApp:
         pose = view["tool"].pose_at(self.scene.time_s)
         gizmo = self.server.scene.add_transform_controls(f"/tools/{name}", scale=8.0, position=tuple(pose.position_mm),
                                                          wxyz=self._gizmo_wxyz(name, pose), disable_rotations=not view["rotate"].value)
-        view["gizmo"], view["gizmo_at"] = gizmo, None
+        view["gizmo"] = gizmo
         gizmo.on_update(lambda event, n=name, g=gizmo: self._act(event, lambda: self._gizmo_moved(n, g)))
 
     def _gizmo_wxyz(self, name: str, pose) -> tuple:

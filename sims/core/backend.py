@@ -65,6 +65,39 @@ def read_cached_npz(path: Path, *names: str):
         return None
 
 
+def cache_key(*items) -> str:
+    """Hex digest of items: strings, numbers, None and arrays (their shape, dtype and bytes), for a cache entry."""
+    import hashlib
+
+    import numpy as np
+
+    digest = hashlib.sha1()
+    for item in items:
+        if isinstance(item, np.ndarray):
+            digest.update(repr((item.shape, item.dtype.str)).encode())
+            digest.update(np.ascontiguousarray(item).tobytes())
+        else:
+            digest.update(repr(item).encode())
+    return digest.hexdigest()
+
+
+def cached_arrays(folder: str, key: str, names: tuple[str, ...], build, max_bytes: int) -> dict:
+    """{name: array} of the entry `key` of cache_dir()/folder, or build() (a dict with those names) saved there as
+    that entry when there is none; entries past max_bytes go, least recently used first (prune_cache)."""
+    path = cache_dir() / folder / f"{key}.npz"
+    stored = read_cached_npz(path, *names)
+    if stored is not None:
+        try:
+            os.utime(path)  # recently used: pruned last
+        except OSError:
+            pass
+        return dict(zip(names, stored))
+    values = build()
+    save_cached_npz(path, **{name: values[name] for name in names})
+    prune_cache(path.parent, max_bytes)
+    return values
+
+
 def prune_cache(folder: Path, max_bytes: int) -> None:
     """Delete the least recently used entries (oldest modification time) of a cache folder until its files hold at
     most max_bytes; a file another process removes meanwhile is skipped, and one being written (save_cached_npz's

@@ -305,6 +305,14 @@ class Cautery:
         needs no other)."""
         return self.tiles.take_changed(temperature)
 
+    def arrays(self) -> dict[str, np.ndarray]:
+        """What temperature_c, damage_omega, char_level, coagulation_depth_mm, temperature_depth_c and
+        damage_omega_depth return, under those names (char as "char"), read in one launch (field_io.read)."""
+        surface_temperature, temperature, omega, char, depth, omega_depth = field_io.read(
+            [self.surface_temperature, self.temperature, self.omega, self.char, self.coagulation_depth, self.omega_depth])
+        return {"temperature_c": surface_temperature, "damage_omega": omega, "char": char, "coagulation_depth_mm": depth,
+                "temperature_depth_c": self._layers(temperature[self.current]), "damage_omega_depth": self._layers(omega_depth)}
+
     def temperature_c(self) -> np.ndarray:
         """(H, W) C at the surface."""
         return self.surface_temperature.to_numpy()

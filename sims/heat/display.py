@@ -36,9 +36,7 @@ class HeatDisplay(GridReader):
         """state.npz arrays at display resolution (display_grid False: on the heat grid): (H, W) surface maps,
         (L, H, W) layers, (L,) layer depths."""
         cautery = self.cautery
-        arrays = {"temperature_c": cautery.temperature_c(), "damage_omega": cautery.damage_omega(), "char": cautery.char_level(),
-                  "coagulation_depth_mm": cautery.coagulation_depth_mm(), "temperature_depth_c": cautery.temperature_depth_c(),
-                  "damage_omega_depth": cautery.damage_omega_depth()}
+        arrays = cautery.arrays()
         if self.resampler is not None and display_grid:
             arrays = {name: self.resampler.array(values, LOG_OMEGA_FLOOR if name in LOG_READ else None)
                       for name, values in arrays.items()}

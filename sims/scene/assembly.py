@@ -99,7 +99,7 @@ class SceneInputs:
     """What a scene reads from disk, read before any device starts (so a bad file fails fast and a session can keep
     the inputs of its last good build in memory)."""
 
-    mesh: object            # trimesh.Trimesh of the tissue
+    mesh: object            # sims.surface.texels.MeshArrays of the tissue
     textures: list          # one (size, size, 3) float32 colour per look stage
     surfaces: list          # one (size, size, 2) float32 height (mm) and roughness per look stage (sims.look.compose)
 
@@ -107,11 +107,11 @@ class SceneInputs:
 def load_inputs(config: dict) -> SceneInputs:
     """Read and check every input file of a validated scene config; ConfigError names the file and the key."""
     from sims.look.compose import TextureError, load_texture, stage_surface
-    from sims.surface.texels import MeshError, load_mesh
+    from sims.surface.texels import MeshError, load_mesh, read_tissue_mesh
 
     file = config["scene_file"]
     try:
-        mesh = load_mesh(config["mesh"])
+        mesh = read_tissue_mesh(config["mesh"])
     except MeshError as exc:
         raise ConfigError(file, "mesh", f"{config['mesh']}: {exc}") from None
     textures, surfaces = [], []

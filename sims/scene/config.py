@@ -300,7 +300,6 @@ def _check_tissue(tissue, key, ctx):
             tissue[name] = value
 
 
-_BOUND = params.ParamSpec("bound", "", 0.0, -1.0e6, 1.0e6, "")
 _TIME = params.ParamSpec("t_s", "s", 0.0, 0.0, 1.0e5, "")
 _FROM_TO = params.ParamSpec("threshold", "", 0.0, -1.0e4, 1.0e4, "")
 _TILE = params.ParamSpec("tile", "repeats", 1, 1, 64, "", integer=True)

@@ -10,10 +10,16 @@ a convex combination. At an open mesh border the step lands off the surface and 
 """
 from __future__ import annotations
 
+import hashlib
+from pathlib import Path
+
 import numpy as np
-from scipy.spatial import cKDTree
+
+from sims.core.backend import cache_key, cached_arrays
 
 TOLERANCE = 0.75  # a link's far texel lies within this many of the step's lengths of the point stepped to
+LINKS_CACHE_BYTES = 256 << 20  # links on disk (a few kB per surface: the texels of its seams)
+_CODE_VERSION = hashlib.sha1(Path(__file__).read_bytes()).hexdigest()  # a change here finds the links anew
 
 
 def seam_links(surface, coefficients: np.ndarray, neighbours) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -21,7 +27,21 @@ def seam_links(surface, coefficients: np.ndarray, neighbours) -> tuple[np.ndarra
 
     surface: a sims.surface.texels.TissueSurface. coefficients: (H, W, 8) the texel's conductance along each direction of
     `neighbours` ((row, col) offsets). Returns (start (H*W + 1,) int32, target (L,) int32, weight (L,) float32):
-    texel f links to target[start[f]:start[f + 1]] with those weights; weight[l] is the same both ways."""
+    texel f links to target[start[f]:start[f + 1]] with those weights; weight[l] is the same both ways.
+    Kept on disk by what they are found from: a surface read before finds its links without a k-d tree (and without
+    importing scipy.spatial, 0.1-0.3 s of a headless run's start-up)."""
+    names = ("start", "target", "weight")
+    key = cache_key(_CODE_VERSION, surface.mask, surface.position_mm, surface.tangent_u, surface.tangent_v,
+                    np.asarray(coefficients), np.asarray(neighbours))
+    stored = cached_arrays("seams", key, names, lambda: dict(zip(names, _find_links(surface, coefficients, neighbours))),
+                           LINKS_CACHE_BYTES)
+    return tuple(stored[name] for name in names)
+
+
+def _find_links(surface, coefficients: np.ndarray, neighbours) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """seam_links, found with a k-d tree of the surface texels' positions."""
+    from scipy.spatial import cKDTree
+
     mask = surface.mask
     height, width = mask.shape
     rows, cols = np.nonzero(mask)

@@ -11,14 +11,13 @@ import os
 import re
 import stat
 from dataclasses import dataclass, fields
+from importlib import metadata
 from pathlib import Path
 
 import numpy as np
 import taichi as ti
-import trimesh
-from scipy import ndimage
 
-from sims.core.backend import cache_dir, prune_cache, read_cached_npz, save_cached_npz, started_arch
+from sims.core.backend import cache_key, cached_arrays, started_arch
 from sims.core.quoting import quote
 
 UV_OVERLAP_TOLERANCE = 1e-3  # fraction of covered texels two triangles may both claim before UVs count as overlapping
@@ -34,6 +33,8 @@ _PLY_ELEMENT = re.compile(rb"^element\s+(\S+)\s+(\d+)", re.MULTILINE)
 _BARY_EPS = 1e-5
 SURFACE_CACHE_MIN_SIZE = 256      # texel maps of smaller textures build in about the time an entry reads
 SURFACE_CACHE_BYTES = 1 << 30     # cached texel maps on disk (a 512² surface: 15 MB, 1024²: 60 MB)
+MESH_CACHE_BYTES = 256 << 20      # parsed tissue meshes on disk (the liver lobe: 0.6 MB)
+ATLAS_CACHE_BYTES = 256 << 20     # xatlas charts on disk
 _CODE_VERSION = hashlib.sha1(Path(__file__).read_bytes()).hexdigest()  # a change here builds the maps anew
 # Triangle shape limits (per triangle, on its texels' sides in mm: the singular values of [dP/dx dP/dy]).
 # The explicit heat substep count grows as 1 / (shortest texel side)^2, and a texel's conductance toward its
@@ -45,6 +46,21 @@ _MAX_TEXEL_ASPECT = 20.0  # texels at most this many times longer than wide (the
 
 class MeshError(ValueError):
     """A mesh that cannot be used (unreadable, empty, vertices not finite or absurdly far out, covering no texels)."""
+
+
+@dataclass(frozen=True)
+class MeshArrays:
+    """A tissue mesh as the texel maps read it: vertices (V, 3) mm float64, faces (F, 3) int64, uv (V, 2) float64 or
+    None (no per-vertex UVs)."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    uv: np.ndarray | None
+
+    @classmethod
+    def of(cls, mesh) -> "MeshArrays":
+        """The arrays of a trimesh.Trimesh."""
+        return cls(np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64), mesh_uv(mesh))
 
 
 @dataclass
@@ -128,11 +144,34 @@ def _declared_elements(data: bytes, kind: str) -> list[tuple[str, int]]:
     return []
 
 
-def load_mesh(path) -> trimesh.Trimesh:
-    """Read a mesh (read_mesh_file: OBJ, PLY, GLB, STL, OFF) without merging UV seams. Raises MeshError.
+def load_mesh(path):
+    """Read a mesh (read_mesh_file: OBJ, PLY, GLB, STL, OFF) as a trimesh.Trimesh without merging UV seams. Raises
+    MeshError."""
+    return _parse_mesh(*read_mesh_file(path))
 
-    Parsed from its bytes, so trimesh reads no other file (an OBJ's mtllib and textures are not needed)."""
+
+def read_tissue_mesh(path) -> MeshArrays:
+    """load_mesh's arrays, kept on disk by the file's bytes: a run of a scene read before parses nothing and imports
+    no trimesh (0.2-0.3 s of a headless run's start-up). Raises MeshError."""
     data, kind = read_mesh_file(path)
+
+    def parse() -> dict:
+        mesh = MeshArrays.of(_parse_mesh(data, kind))
+        uv = np.zeros((0, 2)) if mesh.uv is None else mesh.uv
+        return {"vertices": mesh.vertices, "faces": mesh.faces, "uv": uv, "has_uv": np.array(mesh.uv is not None)}
+
+    key = cache_key(_CODE_VERSION, metadata.version("trimesh"), kind, np.frombuffer(data, np.uint8))
+    stored = cached_arrays("meshes", key, ("vertices", "faces", "uv", "has_uv"), parse, MESH_CACHE_BYTES)
+    mesh = MeshArrays(stored["vertices"], stored["faces"], stored["uv"] if bool(stored["has_uv"]) else None)
+    check_vertices(mesh.vertices)
+    return mesh
+
+
+def _parse_mesh(data: bytes, kind: str):
+    """A trimesh.Trimesh of a mesh file's bytes (read_mesh_file): trimesh reads no other file (an OBJ's mtllib and
+    textures are not needed). Raises MeshError."""
+    import trimesh
+
     try:
         mesh = trimesh.load(io.BytesIO(data), file_type=kind, force="mesh", process=False)
     except Exception as exc:  # trimesh raises many types for unreadable files
@@ -158,7 +197,7 @@ def check_vertices(vertices) -> None:
                         f"(at most {MAX_COORDINATE_MM:g} mm from the origin)")
 
 
-def mesh_uv(mesh: trimesh.Trimesh) -> np.ndarray | None:
+def mesh_uv(mesh) -> np.ndarray | None:
     """The mesh's per-vertex UVs (V, 2), or None when it has none."""
     uv = getattr(mesh.visual, "uv", None)
     if uv is None or len(uv) != len(mesh.vertices):
@@ -166,14 +205,13 @@ def mesh_uv(mesh: trimesh.Trimesh) -> np.ndarray | None:
     return np.asarray(uv, np.float64)
 
 
-def build_surface(mesh: trimesh.Trimesh, size: int) -> TissueSurface:
-    """Rasterise `mesh` into size x size texel maps, using its UVs when they are unique and the triangles they
-    make the maps skip (_triangle_frames) hold at most UV_OVERLAP_TOLERANCE of the area, else an xatlas atlas.
-    Kept on disk (_cached_surface). Raises MeshError (check_vertices; no texel covered)."""
+def build_surface(mesh, size: int) -> TissueSurface:
+    """Rasterise `mesh` (MeshArrays or a trimesh.Trimesh) into size x size texel maps, using its UVs when they are
+    unique and the triangles they make the maps skip (_triangle_frames) hold at most UV_OVERLAP_TOLERANCE of the
+    area, else an xatlas atlas. Kept on disk (_cached_surface). Raises MeshError (check_vertices; no texel covered)."""
     check_vertices(mesh.vertices)
-    vertices = np.asarray(mesh.vertices, np.float64)
-    faces = np.asarray(mesh.faces, np.int64)
-    uv = mesh_uv(mesh)
+    arrays = mesh if isinstance(mesh, MeshArrays) else MeshArrays.of(mesh)
+    vertices, faces, uv = arrays.vertices, arrays.faces, arrays.uv
     return _cached_surface(size, lambda: _build_surface(vertices, faces, uv, size), vertices, faces, uv)
 
 
@@ -214,25 +252,11 @@ def _cached_surface(size: int, build, *inputs) -> TissueSurface:
     Sizes under SURFACE_CACHE_MIN_SIZE are always built; entries past SURFACE_CACHE_BYTES go, least recently used first."""
     if size < SURFACE_CACHE_MIN_SIZE:
         return build()
-    digest = hashlib.sha1(repr((_CODE_VERSION, np.__version__, ti.__version__, started_arch(), size)).encode())
-    for item in inputs:
-        digest.update(repr(None if item is None else (np.shape(item), np.asarray(item).dtype.str)).encode())
-        digest.update(b"" if item is None else np.ascontiguousarray(item).tobytes())
-    path = cache_dir() / "surfaces" / f"{digest.hexdigest()}.npz"
-    names = [field.name for field in fields(TissueSurface)]
-    stored = read_cached_npz(path, *names)
-    if stored is not None:
-        try:
-            os.utime(path)  # recently used: pruned last
-        except OSError:
-            pass
-        values = dict(zip(names, stored))
-        return TissueSurface(**{**values, "size": int(values["size"]), "uv_source": str(values["uv_source"]),
-                                "skipped_triangles": int(values["skipped_triangles"])})
-    surface = build()
-    save_cached_npz(path, **{name: getattr(surface, name) for name in names})
-    prune_cache(path.parent, SURFACE_CACHE_BYTES)
-    return surface
+    key = cache_key(_CODE_VERSION, np.__version__, ti.__version__, started_arch(), size, *inputs)
+    names = tuple(field.name for field in fields(TissueSurface))
+    values = cached_arrays("surfaces", key, names, lambda: vars(build()), SURFACE_CACHE_BYTES)
+    return TissueSurface(**{**values, "size": int(values["size"]), "uv_source": str(values["uv_source"]),
+                            "skipped_triangles": int(values["skipped_triangles"])})
 
 
 def _skipped_area_fraction(vertices, faces, uv, size) -> float:
@@ -246,16 +270,13 @@ def _skipped_area_fraction(vertices, faces, uv, size) -> float:
 def atlas_uv(vertices: np.ndarray, faces: np.ndarray, size: int):
     """Unique UVs from xatlas (cached on disk): (vertices (V', 3), faces (F, 3), uv (V', 2)).
 
-    The cache entry is complete or absent (backend.save_cached_npz); an entry
-    that cannot be read all the same (truncated, corrupt) is deleted and the atlas computed again."""
+    The cache entry is complete or absent (backend.cached_arrays); an entry that cannot be read all the same
+    (truncated, corrupt) is deleted and the atlas computed again."""
     check_vertices(vertices)
-    key = hashlib.sha1(vertices.astype(np.float64).tobytes() + faces.astype(np.int64).tobytes() + str(size).encode()).hexdigest()
-    cached = cache_dir() / "atlas" / f"{key}.npz"
-    result = read_cached_npz(cached, "vertices", "faces", "uv")
-    if result is None:
-        result = _compute_atlas(vertices, faces, size)
-        save_cached_npz(cached, vertices=result[0], faces=result[1], uv=result[2])
-    return result
+    names = ("vertices", "faces", "uv")
+    stored = cached_arrays("atlas", cache_key(vertices.astype(np.float64), faces.astype(np.int64), size), names,
+                           lambda: dict(zip(names, _compute_atlas(vertices, faces, size))), ATLAS_CACHE_BYTES)
+    return tuple(stored[name] for name in names)
 
 
 def _compute_atlas(vertices: np.ndarray, faces: np.ndarray, size: int):
@@ -403,6 +424,8 @@ def _texel_maps(vertices, faces, uv, owner, size, uv_source) -> TissueSurface:
         raise MeshError(f"the mesh covers no texel of a {size}x{size} texture")
     mask = np.zeros((size, size), bool)
     mask[rows, cols] = True
+    from scipy import ndimage  # only where maps are built: a cached surface needs none of scipy.ndimage
+
     _, (near_r, near_c) = ndimage.distance_transform_edt(~mask, return_indices=True)
     return TissueSurface(
         size=size,

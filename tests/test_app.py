@@ -341,7 +341,11 @@ def test_a_value_typed_key_by_key_is_kept_and_the_box_shows_the_value_in_use(lab
             return (lab.scene.instrument(BALL).base.tip_temperature_c == used and lab.sliders[key][0].value == used
                     and time.monotonic() - lab._typed_at[key] > 2 * TYPING_QUIET_S)
 
-        in_browser(lab, chrome, type_keys, until=settled)
+        try:
+            in_browser(lab, chrome, type_keys, until=settled)
+        except AssertionError as exc:
+            raise AssertionError(f"typed {typed}: the lab uses {lab.scene.instrument(BALL).base.tip_temperature_c}, the slider holds "
+                                 f"{lab.sliders[key][0].value}; {exc}") from None
         shown = in_browser(lab, chrome, lambda _: slider_input(page.page, label).input_value())
         assert float(shown) == used, f"typed {typed}: the box shows {shown}, the lab uses {used}"
 

@@ -81,6 +81,14 @@ def cache_key(*items) -> str:
     return digest.hexdigest()
 
 
+def source_digest(module_file: str) -> str:
+    """Hex digest of a module's source (pass its __file__): in a cache key, an edit to the code that builds an entry
+    builds it anew."""
+    import hashlib
+
+    return hashlib.sha1(Path(module_file).read_bytes()).hexdigest()
+
+
 def cached_arrays(folder: str, key: str, names: tuple[str, ...], build, max_bytes: int) -> dict:
     """{name: array} of the entry `key` of cache_dir()/folder, or build() (a dict with those names) saved there as
     that entry when there is none; entries past max_bytes go, least recently used first (prune_cache)."""

@@ -14,19 +14,17 @@ up to half a coarse texel outside it (a ball held 2 s, heat on 192² under 384²
 35 % on 3:1 stretched ones). A value below exp(log_floor) reads as exp(log_floor) (0 has a log), and a texel whose
 taps all lie there reads 0.
 """
-import hashlib
 import math
-from pathlib import Path
 
 import numpy as np
 import taichi as ti
 
 from sims.core import field_io
-from sims.core.backend import cache_key, cached_arrays
+from sims.core.backend import cache_key, cached_arrays, source_digest
 
 TAPS = 4
 TAPS_CACHE_BYTES = 256 << 20  # bilinear taps on disk (a 256² grid under 512²: 6 MB)
-_CODE_VERSION = hashlib.sha1(Path(__file__).read_bytes()).hexdigest()  # a change here computes the taps anew
+_CODE_VERSION = source_digest(__file__)  # a change here computes the taps anew
 SMALLEST = float(np.finfo(np.float32).tiny)  # log_floor must lie above its log (-87.3): 0 then reads at the floor
 
 

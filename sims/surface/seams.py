@@ -10,16 +10,13 @@ a convex combination. At an open mesh border the step lands off the surface and 
 """
 from __future__ import annotations
 
-import hashlib
-from pathlib import Path
-
 import numpy as np
 
-from sims.core.backend import cache_key, cached_arrays
+from sims.core.backend import cache_key, cached_arrays, source_digest
 
 TOLERANCE = 0.75  # a link's far texel lies within this many of the step's lengths of the point stepped to
 LINKS_CACHE_BYTES = 256 << 20  # links on disk (a few kB per surface: the texels of its seams)
-_CODE_VERSION = hashlib.sha1(Path(__file__).read_bytes()).hexdigest()  # a change here finds the links anew
+_CODE_VERSION = source_digest(__file__)  # a change here finds the links anew
 
 
 def seam_links(surface, coefficients: np.ndarray, neighbours) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -5,7 +5,6 @@ image (v = 1), column 0 is u = 0. Texel (row r, col c) has its centre at
 u = (c + 0.5) / W, v = 1 - (r + 0.5) / H. "Grid coordinates" x = u W (columns) and y = (1 - v) H (rows).
 """
 
-import hashlib
 import io
 import os
 import re
@@ -17,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import taichi as ti
 
-from sims.core.backend import cache_key, cached_arrays, started_arch
+from sims.core.backend import cache_key, cached_arrays, source_digest, started_arch
 from sims.core.quoting import quote
 
 UV_OVERLAP_TOLERANCE = 1e-3  # fraction of covered texels two triangles may both claim before UVs count as overlapping
@@ -35,7 +34,7 @@ SURFACE_CACHE_MIN_SIZE = 256      # texel maps of smaller textures build in abou
 SURFACE_CACHE_BYTES = 1 << 30     # cached texel maps on disk (a 512² surface: 15 MB, 1024²: 60 MB)
 MESH_CACHE_BYTES = 256 << 20      # parsed tissue meshes on disk (the liver lobe: 0.6 MB)
 ATLAS_CACHE_BYTES = 256 << 20     # xatlas charts on disk
-_CODE_VERSION = hashlib.sha1(Path(__file__).read_bytes()).hexdigest()  # a change here builds the maps anew
+_CODE_VERSION = source_digest(__file__)  # a change here builds the maps anew
 # Triangle shape limits (per triangle, on its texels' sides in mm: the singular values of [dP/dx dP/dy]).
 # The explicit heat substep count grows as 1 / (shortest texel side)^2, and a texel's conductance toward its
 # neighbours as its longest side / its shortest side, so one sliver (1e-3 mm wide, 10 mm long) asked for

@@ -48,10 +48,9 @@ def write_png(path: Path, rgb) -> None:
     Image.fromarray(rgb).save(path, format="PNG", compress_level=PNG_COMPRESS_LEVEL)
 
 
-def _warn_blood_lost(scene: Scene, bar) -> None:
-    """Say once, on stderr, why the bleeding method lost blood (metrics count all of it)."""
-    warning = None if scene.bleeding is None else scene.bleeding.take_warning()
-    if warning:
+def _warn_what_was_lost(scene: Scene, bar) -> None:
+    """Say once, on stderr, why a model lost something (the bleeding method blood; metrics count all of it)."""
+    for _, warning in scene.take_warnings():
         bar.write(f"warning: {scene.name}: at t = {scene.time_s:.2f} s: {warning}", file=sys.stderr)
 
 
@@ -161,7 +160,7 @@ def _simulate(scene: Scene, folder: Path, total: int, frame_every: int, progress
                     raise SimulationDiverged(f"{bad} became non-finite at step {index} (t = {scene.time_s:.4g} s)")
             if index == 1:
                 first_step = time.perf_counter() - start
-            _warn_blood_lost(scene, bar)
+            _warn_what_was_lost(scene, bar)
             if frame_every and index % frame_every == 0:
                 write_png(folder / "frames" / f"frame_{index // frame_every:05d}.png", scene.composite())
     wall = time.perf_counter() - start

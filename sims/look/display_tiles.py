@@ -83,20 +83,20 @@ class DisplayTiles:
         self._changed = np.zeros(self.grid, bool)
         self._fresh = True              # nothing composed yet: the first select() makes every tile pending
 
-    def select(self, changed_heat: np.ndarray | None, changed_film: np.ndarray | None) -> None:
+    def select(self, heat: np.ndarray | None = None, film: np.ndarray | None = None) -> None:
         """Add to the pending work the tiles to recompose from the changed heat tiles and film tiles (bool, row-major
         over each grid; None: none changed), every tile the first time. plan() then flags what a compose does."""
         if self._fresh:
             self._fresh = False
             self._pending[:] = EVERYTHING
             return
-        heat_changed = changed_heat is not None and self.heat_reads is not None and np.any(changed_heat)
-        film_changed = changed_film is not None and self.film_reads is not None and np.any(changed_film)
+        heat_changed = heat is not None and self.heat_reads is not None and np.any(heat)
+        film_changed = film is not None and self.film_reads is not None and np.any(film)
         if not (heat_changed or film_changed):  # an idle scene: nothing to work out
             return
         none = np.zeros(self.tiles, bool)
-        tissue = (self.heat_reads.T @ np.ravel(changed_heat).astype(np.int32)) > 0 if heat_changed else none
-        blood = (self.film_reads.T @ np.ravel(changed_film).astype(np.int32)) > 0 if film_changed else none
+        tissue = (self.heat_reads.T @ np.ravel(heat).astype(np.int32)) > 0 if heat_changed else none
+        blood = (self.film_reads.T @ np.ravel(film).astype(np.int32)) > 0 if film_changed else none
         rows = _grow(blood.reshape(self.grid), 0, self.blood_reach)  # the pass along rows reads left and right
         columns = _grow(rows, self.blood_reach, 0)                   # the pass along columns up and down
         write = tissue.reshape(self.grid) | columns

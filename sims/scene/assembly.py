@@ -14,15 +14,17 @@ from sims.core import backend
 from sims.core.quoting import quote
 from sims.scene import params
 from sims.scene.config import ConfigError, load_scene_config
+from sims.scene.models import MODELS, SceneLinks
 
-# Parameters a scene offers (see Scene.parameters): (key prefix in the config, spec table, model it needs, names that
-# need a rebuild). duration_s is left out: it only ends headless runs.
-_MODEL_GROUPS = (
-    ("", {name: spec for name, spec in params.SIMULATION.items() if name != "duration_s"}, None, {"texture_size"}),
-    ("tissue", params.TISSUE, "cautery", set()),
-    ("cautery", params.CAUTERY, "cautery", {"layers", "depth_mm", "heat_grid_divisor"}),
-    ("bleeding", None, "bleeding", None),  # the table and rebuild keys of the scene's bleeding method (sims.blood.methods)
-    ("look", params.LOOK, "bleeding", set()),
+# Parameters a scene offers (see Scene.parameters): (key prefix in the config, spec table, names that need a rebuild);
+# a prefix other than "" is a section of the model that reads it (sims.scene.models). duration_s is left out: it only
+# ends headless runs.
+_PARAMETER_GROUPS = (
+    ("", {name: spec for name, spec in params.SIMULATION.items() if name != "duration_s"}, {"texture_size"}),
+    ("tissue", params.TISSUE, set()),
+    ("cautery", params.CAUTERY, {"layers", "depth_mm", "heat_grid_divisor"}),
+    ("bleeding", None, None),  # the table and rebuild keys of the scene's bleeding method (sims.blood.methods)
+    ("look", params.LOOK, set()),
 )
 SHAPE_PARAMETERS = {"ball": ("radius_mm",), "capsule": ("radius_mm", "length_mm"), "spatula": ("width_mm", "thickness_mm", "length_mm"),
                     "mesh": ("sdf_resolution",)}
@@ -172,46 +174,46 @@ class Scene:
         from sims.scene.instruments import Instrument
 
         self.instruments = [Instrument.from_config(item) for item in config["instruments"]]
-        self.cautery = self.bleeding = self.film = None
-        self.bleed_points = []
-        self._active_tool = None      # (name, position mm, last move mm) of the heating tool last seen energized
-        self._section_sampler = None  # sims.heat.section.SectionSampler, made on the first burn_section()
         self._triangles_mm = None     # ((F, 3, 3) the mesh's triangles, their boxes' (3, F) low and high corners) mm, for rays
         self._clearances = {}         # (tool, position, direction, roll) -> tool_clearance_mm
         self._parameters = None  # (tool and point names, parameter table) made by parameters()
         self._nearest: dict = {}      # world position (mm) -> nearest surface texel (texel_near)
-        self._coagulated: dict = {}   # heat grid texel -> 1 - exp(-Omega) read since the burn last changed
-        if "cautery" in self.models:
-            from sims.heat.cautery import Cautery
-            from sims.heat.display import HeatDisplay
-            from sims.scene.instruments import InstrumentFields
-            from sims.surface.resample import model_grid
-
-            self.heat_surface, resampler = model_grid(self.surface, config["cautery"]["heat_grid_divisor"])
-            self.instrument_fields = InstrumentFields([tool for tool in self.instruments if tool.suction is None])
-            self.cautery = Cautery(self.heat_surface, config["tissue"], config["cautery"], self.instrument_fields,
-                                   scheme=config["cautery"]["scheme"])
-            self.heat_display = HeatDisplay(self.cautery, resampler)
-        if "bleeding" in self.models:
-            from sims.blood.methods import build_bleeding
-            from sims.look.film import BloodFilm
-            from sims.scene.bleed_points import BleedPoint
-
-            self.bleeding = build_bleeding(self.surface, config)
-            self.film = BloodFilm(self.bleeding)
-            self.bleed_points = [BleedPoint(item) for item in config["bleed_points"]]
-            from sims.surface.nearest import NearestTexel
-
-            self._nearest_texel = NearestTexel(self.surface)
+        self._nearest_texel = None    # sims.surface.nearest.NearestTexel, made on the first texel_near()
+        links = SceneLinks(self.instruments, self.texel_near, self.coagulated_fraction)
+        self._models = {name: model.from_config(self.surface, config, links)
+                        for name, model in MODELS.items() if name in self.models}  # in MODELS' (stepping) order
         texel_mm = float(np.sqrt(np.median(self.surface.texel_area_mm2[self.surface.mask])))
         self.composer = Composer(config["look"]["stages"], textures, surfaces, self.surface.fill_index, texel_mm)
-        heat = film = None
-        if self.cautery is not None:
-            heat = (self.heat_display.taps(), self.heat_surface.mask.shape, self.cautery.tiles.tile)
-        if self.film is not None:
-            film = (self.film.taps(), self.film.trail.shape, self.film.tile)
-        self.display_tiles = DisplayTiles(self.surface.fill_index, heat, film,
-                                          0 if self.film is None else self.film.display_per_texel // 2, DISPLAY_TILE)
+        self._shown = [model for model in self._models.values() if model.look_input is not None]  # what the look reads
+        reads = {model.look_input: model.display_reads() for model in self._shown}
+        reach = max((model.display_reach for model in self._shown), default=0)
+        self.display_tiles = DisplayTiles(self.surface.fill_index, **reads, blood_reach=reach, tile=DISPLAY_TILE)
+
+    def model(self, name: str):
+        """The scene's model of that name (sims.scene.models.MODELS), or None when it does not run it."""
+        return self._models.get(name)
+
+    # The models' own objects, for what only they offer (None without the model).
+    cautery = property(lambda self: self._part("cautery", "cautery"))
+    heat_display = property(lambda self: self._part("cautery", "heat_display"))
+    heat_surface = property(lambda self: self._part("cautery", "heat_surface"))
+    instrument_fields = property(lambda self: self._part("cautery", "instrument_fields"))
+    bleeding = property(lambda self: self._part("bleeding", "bleeding"))
+    film = property(lambda self: self._part("bleeding", "film"))
+
+    def _reader(self, section: str):
+        """The model of this scene that reads that config section's live parameters, or None."""
+        return next((model for model in self._models.values() if section in model.sections), None)
+
+    def _part(self, model: str, part: str):
+        found = self._models.get(model)
+        return None if found is None else getattr(found, part)
+
+    @property
+    def bleed_points(self) -> list:
+        """The bleed points (sims.scene.bleed_points.BleedPoint) now, in the order they came; none without bleeding."""
+        blood = self._models.get("bleeding")
+        return [] if blood is None else blood.bleed_points
 
     @classmethod
     def from_file(cls, path, overrides=(), arch: str = "auto") -> "Scene":
@@ -233,54 +235,23 @@ class Scene:
         dt = self.time_step_s
         if dt != self._time_base[2]:
             self._time_base = (self.time_s, self.steps, dt)
-        if self.cautery is not None:
-            with self._timed("cautery"):
-                self.instrument_fields.set_time(self.time_s)
-                self._note_active_tool()
-                self.cautery.step(dt)
-            if self.cautery.tiles.awake or self.cautery.scheme == "implicit":
-                self._unchecked.add("cautery")
-                self._coagulated.clear()
-        if self.bleeding is not None:
-            with self._timed("bleeding"):
-                self._bleed(dt)
-            if self.bleeding.moved:
-                self._unchecked.add("bleeding")
-            with self._timed("compose"):
-                self.film.advance(dt, self.config["look"]["blood_trail_s"])
+        for name, model in self._models.items():
+            with self._timed(name):
+                changed = model.step(dt, self.time_s)
+            if changed:
+                self._unchecked.add(name)
+        with self._timed("compose"):
+            for model in self._models.values():
+                model.advance_look(dt)
         self.steps += 1
         t0, n0, _ = self._time_base
         self.time_s = t0 + (self.steps - n0) * dt  # = steps * dt exactly while dt never changed
 
-    def _note_active_tool(self) -> None:
-        """Remember the energized heating tool last seen (the first when several are) and which way it moved."""
-        for tool, pose in zip(self.instrument_fields.instruments, self.instrument_fields.poses):
-            if pose.energized:
-                position = np.asarray(pose.position_mm, np.float64)
-                name, last, moved = self._active_tool or (None, position, np.zeros(3))
-                step = position - last
-                if name == tool.name and np.linalg.norm(step) > 0.05:  # mm: a move, not jitter
-                    moved = step
-                elif name != tool.name:
-                    moved = np.zeros(3)
-                self._active_tool = (tool.name, position, moved)
-                return
-
     def burn_section(self, half_length_mm: float = 4.0, samples: int = 81):
         """sims.heat.section.BurnSection across the stroke of the most recently energized heating tool (along the texture's
         u direction while it has not moved), or None before any tool was energized or without the cautery model."""
-        if self.cautery is None or self._active_tool is None:
-            return None
-        if self._section_sampler is None:
-            from sims.heat.section import SectionSampler
-
-            self._section_sampler = SectionSampler(self.heat_surface)
-        name, position, moved = self._active_tool
-        r, c = self._section_sampler.nearest(position[None])[0]
-        across = np.cross(self.heat_surface.normal[r, c].astype(np.float64), moved)  # zero while it has not moved
-        section = self._section_sampler.section(self.cautery, position, across, half_length_mm, samples)
-        section.tool = name
-        return section
+        heat = self._models.get("cautery")
+        return None if heat is None else heat.burn_section(half_length_mm, samples)
 
     @contextlib.contextmanager
     def _timed(self, model: str):
@@ -310,8 +281,8 @@ class Scene:
 
     def _parameter_table(self) -> dict[str, SceneParameter]:
         table = {}
-        for group, specs, model, rebuild in _MODEL_GROUPS:
-            if model is not None and model not in self.models:
+        for group, specs, rebuild in _PARAMETER_GROUPS:
+            if group and self._reader(group) is None:
                 continue
             if group == "bleeding":
                 from sims.blood.methods import REBUILD_KEYS
@@ -334,11 +305,10 @@ class Scene:
             if index is not None:
                 for name in SHAPE_PARAMETERS[tool.shape["type"]]:
                     table[f"instruments.{tool.name}.shape.{name}"] = SceneParameter(params.SHAPE[name], False, f"{prefix}.shape.{name}")
-        if self.bleeding is not None:
-            for point in self.bleed_points:
-                index = self._file_index(point)
-                for name, spec in params.BLEED_POINT.items():
-                    table[f"bleed_points.{point.name}.{name}"] = SceneParameter(spec, True, None if index is None else f"bleed_points.{index}.{name}")
+        for point in self.bleed_points:
+            index = self._file_index(point)
+            for name, spec in params.BLEED_POINT.items():
+                table[f"bleed_points.{point.name}.{name}"] = SceneParameter(spec, True, None if index is None else f"bleed_points.{index}.{name}")
         return table
 
     def parameter_value(self, key: str):
@@ -384,7 +354,7 @@ class Scene:
             if name == "rate_ml_s":
                 changed.update(self._drop_keyframes(point.item["path"], "rate_ml_s", parameter.config_key))
         elif rest:
-            self.config[group][rest] = value
+            self._reader(group).set(key, value)
         else:
             self.config[group] = value
         return {config_key: item for config_key, item in changed.items() if config_key is not None}
@@ -516,8 +486,7 @@ class Scene:
     def script_end_s(self) -> float:
         """Time of the last keyframe of any tool or bleed point (0 when nothing is scripted)."""
         ends = [tool.script_end_s() for tool in self.instruments]
-        if self.bleeding is not None:
-            ends += [frame["t_s"] for point in self.bleed_points for frame in point.item["path"]]
+        ends += [frame["t_s"] for point in self.bleed_points for frame in point.item["path"]]
         return max(ends, default=0.0)
 
     def bleed_point(self, name: str):
@@ -565,6 +534,10 @@ class Scene:
         key = tuple(float(v) for v in np.asarray(position_mm, np.float64).ravel())
         texel = self._nearest.get(key)
         if texel is None:
+            if self._nearest_texel is None:
+                from sims.surface.nearest import NearestTexel
+
+                self._nearest_texel = NearestTexel(self.surface)
             texel = tuple(int(v) for v in self._nearest_texel.query(np.asarray([key]))[0])
             if len(self._nearest) >= NEAR_CACHE:
                 self._nearest.clear()
@@ -572,28 +545,21 @@ class Scene:
         return texel
 
     def coagulated_fraction(self, texel_rc) -> float:
-        """1 - exp(-Omega) at a texel; 0 without the cautery model. Read from the device once per texel while the burn
-        does not change (Scene.step forgets the values when the cautery stepped)."""
-        if self.cautery is None:
-            return 0.0
-        coarse = self.heat_display.coarse_texel(texel_rc)
-        if coarse not in self._coagulated:
-            self._coagulated[coarse] = float(1.0 - np.exp(-float(self.cautery.omega[coarse])))
-        return self._coagulated[coarse]
+        """1 - exp(-Omega) at a surface texel (sims.scene.models.HeatModel.coagulated_fraction); 0 without the
+        cautery model. What couples the bleeding to the burn."""
+        heat = self._models.get("cautery")
+        return 0.0 if heat is None else heat.coagulated_fraction(texel_rc)
 
     def bleed_rates(self) -> dict:
         """Current rate (ml/s) of every bleed point, after coagulation of the tissue under it."""
-        rates = {}
-        for point in self.bleed_points:
-            texel = self.texel_near(point.position_at(self.time_s))
-            rates[point.name] = point.rate_at(self.time_s) * (1.0 - self.coagulated_fraction(texel))
-        return rates
+        blood = self._models.get("bleeding")
+        return {} if blood is None else blood.rates(self.time_s)
 
     def add_bleed_point(self, name: str, position_mm, rate_ml_s: float, radius_mm: float = 0.5):
         """A new bleed point from now on (bleeding model only); returns it."""
         from sims.scene.bleed_points import BleedPoint
 
-        if self.bleeding is None:
+        if "bleeding" not in self._models:
             raise Refused("this scene has no bleeding model")
         if any(point.name == name for point in self.bleed_points):
             raise Refused(f"there is a bleed point {quote(name)} already")
@@ -605,34 +571,14 @@ class Scene:
         self.bleed_points.append(point)
         return point
 
-    def _bleed(self, dt: float) -> None:
-        for point in self.bleed_points:
-            rate = point.rate_at(self.time_s)
-            if rate > 0.0:
-                texel = self.texel_near(point.position_at(self.time_s))
-                rate *= 1.0 - self.coagulated_fraction(texel)
-                self.bleeding.spawn_rate(point.name, texel, rate, dt, point.item["radius_mm"])
-        suction = []
-        for instrument in self.instruments:
-            if instrument.suction is not None:
-                pose = instrument.pose_at(self.time_s)
-                if pose.energized:
-                    suction.append((pose.position_mm, instrument.suction["radius_mm"], instrument.suction["rate_ml_s"]))
-        self.bleeding.step(dt, suction)
-
     def reset(self) -> None:
         """Back to t = 0 with the current parameters; every tool back to its script."""
         self.release()
         self.time_s, self.steps = 0.0, 0
         self._time_base = (0.0, 0, self.time_step_s)
         self._unchecked = set(self.models)
-        if self.cautery is not None:
-            self.cautery.reset()
-            self._active_tool = None
-            self._coagulated.clear()
-        if self.bleeding is not None:
-            self.bleeding.reset()
-            self.film.reset()
+        for model in self._models.values():
+            model.reset()
 
     # --- outputs ------------------------------------------------------------------------------
     def composite(self, wanted: tuple[int, np.ndarray] | None = None) -> np.ndarray:
@@ -648,7 +594,7 @@ class Scene:
                 raise ValueError(f"wanted: {np.shape(wanted[1])} blocks of {wanted[0]} texels; the display has "
                                  f"{tiles.grid} tiles of {tiles.tile}")
             tiles.plan(None if wanted is None else wanted[1])
-            return self.composer.compose(tiles, None if self.cautery is None else self.heat_display, self.film)
+            return self.composer.compose(tiles, **{model.look_input: model.look_layer() for model in self._shown})
 
     def pending_display_changes(self) -> tuple[int, np.ndarray]:
         """(tile, flags): the tile x tile texel blocks of the maps that the next composite() would change (flags
@@ -659,9 +605,8 @@ class Scene:
 
     def _collect_display_changes(self) -> None:
         """Hand the tiles the burn and the film changed since the last call to the display's pending work."""
-        heat = None if self.cautery is None else self.cautery.take_changed_tiles(self.composer.shows_temperature)
-        film = None if self.film is None else self.film.take_touched()
-        self.display_tiles.select(heat, film)
+        changed = {model.look_input: model.take_changed_tiles(self.composer.shows_temperature) for model in self._shown}
+        self.display_tiles.select(**changed)
 
     def material_maps(self) -> tuple[np.ndarray, np.ndarray]:
         """(normal (H, W, 3) uint8, roughness (H, W) uint8) of the last composite() (sims.look.compose.Composer)."""
@@ -676,10 +621,8 @@ class Scene:
         """Arrays of docs/guide/headless.md ("state.npz") for the models this scene runs; display_grid False: each on its model's own grid
         (not resampled: what a check for NaN needs, at a fraction of the cost)."""
         state = {"texel_position_mm": self.surface.position_mm, "texel_mask": self.surface.mask}
-        if self.cautery is not None:
-            state.update(self.heat_display.arrays(display_grid))
-        if self.bleeding is not None:
-            state.update(self.bleeding.state_arrays(display_grid))
+        for model in self._models.values():
+            state.update(model.state_arrays(display_grid))
         return state
 
     def non_finite_field(self) -> str | None:
@@ -687,10 +630,9 @@ class Scene:
         value is finite when the values it is read from are). Only the models that stepped anything since the last
         call are read: the others' fields are as they were."""
         arrays = {}
-        if self.cautery is not None and "cautery" in self._unchecked:
-            arrays.update(self.heat_display.arrays(False))
-        if self.bleeding is not None and "bleeding" in self._unchecked:
-            arrays.update(self.bleeding.state_arrays(False))
+        for name, model in self._models.items():
+            if name in self._unchecked:
+                arrays.update(model.state_arrays(False))
         self._unchecked = set()
         for name, values in arrays.items():
             if values.dtype.kind == "f" and not np.isfinite(values).all():
@@ -698,14 +640,15 @@ class Scene:
                 return name
         return None
 
+    def take_warnings(self) -> list[tuple[str, str]]:
+        """(model name, text) of each model's warning since the last call (sims.scene.models.SceneModel.take_warning)."""
+        found = [(name, model.take_warning()) for name, model in self._models.items()]
+        return [(name, text) for name, text in found if text]
+
     def metrics(self) -> dict:
         result = {"scene": self.name, "duration_s": self.time_s, "steps": self.steps, "models": self.models, "arch": self.arch}
-        if self.cautery is not None:
-            result["cautery"] = {**self.heat_display.metrics(), "heat_scheme": self.cautery.scheme,
-                                 "heat_substeps_per_step": self.cautery.substeps(self.time_step_s),
-                                 "heat_solver_iterations_last_step": self.cautery.last_iterations}
-        if self.bleeding is not None:
-            result["bleeding"] = {**self.bleeding.metrics(), "bleed_rates_ml_s": self.bleed_rates()}
+        for name, model in self._models.items():
+            result[name] = model.metrics(self.time_s, self.time_step_s)
         return result
 
 

@@ -21,6 +21,7 @@ import yaml
 
 from sims.core.quoting import quote
 from sims.scene import params
+from sims.scene.models import MODELS  # the names a scene file may list under `models`
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 MAX_SCENE_BYTES = 1_000_000  # a scene file is a page of YAML; anything larger is refused before it is read
@@ -31,7 +32,6 @@ MAX_EXPANDED = 4 * MAX_SCENE_BYTES
 MAX_DEPTH = 32  # nesting of YAML collections (a scene nests 6 deep; PyYAML's composer recurses, 1000 deep overflows)
 KEY_CHARS = 120  # of a dotted key shown in a message (the longest a scene has is under 50)
 NAME_PATTERN = re.compile(r"[A-Za-z0-9_\-]{1,64}")
-MODELS = ("cautery", "bleeding")
 STAGE_FIELDS = ("coagulation", "char", "omega", "temperature_c", "coagulation_depth_mm")
 SHAPE_TYPES = ("ball", "capsule", "spatula", "mesh")
 CAUTERY_SCHEMES = ("explicit", "implicit")  # = sims.heat.cautery.SCHEMES (not imported here: that imports Taichi)

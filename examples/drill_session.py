@@ -8,7 +8,7 @@ import argparse
 
 from lab.session import LabSession
 from sims.core.backend import ARCH_CHOICES
-from sims.scene.assembly import Refused
+from sims.scene.checked import Refused
 from sims.scene.config import REPO_ROOT
 
 BALL = "ball_electrode"

@@ -4,7 +4,7 @@ Every front end drives the lab through a LabSession: the viser app (lab.web.app)
 can do all a browser does with the same calls. Command methods (`set_parameter`, `take_over`, `switch_scene`, ...)
 may be called from any thread: each checks its values at once against what the session offers (the scene list,
 the quality presets, the scene's parameters and their ranges; finite numbers only) and raises `Refused` with the
-reason, then queues the change. The simulation thread calls `tick()`, which applies queued changes between steps,
+reason, then queues the change as a named command (lab.commands). The simulation thread calls `tick()`, which applies queued changes between steps,
 rebuilds the scene when asked, and steps it at the speed asked (real time by default).
 
 Rebuilds: parameters the models do not read every step (texture size, particle pool, tool shapes, the quality
@@ -22,9 +22,11 @@ from pathlib import Path
 
 import numpy as np
 
+from lab import commands
 from sims.core import backend
 from sims.scene import checks, params
-from sims.scene.assembly import Refused, Scene, checked_flag, checked_number, finite_vector, load_inputs, unit_direction
+from sims.scene.assembly import Scene, load_inputs
+from sims.scene.checked import Refused, checked_flag, checked_number, finite_vector, unit_direction
 from sims.scene.config import REPO_ROOT, ConfigError, load_scene_config, parse_override
 from sims.scene.instruments import Instrument, Pose
 
@@ -124,7 +126,7 @@ class LabSession:
         return str(path)
 
     def parameters(self) -> dict:
-        """The running scene's parameters (sims.scene.assembly.SceneParameter by key)."""
+        """The running scene's parameters (sims.scene.parameters.SceneParameter by key)."""
         return self.scene.parameters()
 
     def parameter_value(self, key: str):
@@ -148,7 +150,7 @@ class LabSession:
         return end > 0 and self.scene.time_s > end
 
     # --- commands (any thread) --------------------------------------------------------------
-    def _queue(self, command) -> None:
+    def _queue(self, command: commands.Command) -> None:
         try:
             self._commands.put_nowait(command)
         except queue.Full:
@@ -167,9 +169,9 @@ class LabSession:
                 fresh = key not in self._pending_parameters
                 self._pending_parameters[key] = value
             if fresh:
-                self._queue(self._apply_parameters)
+                self._queue(commands.SetParameters())
         else:
-            self._queue(lambda: self._rebuild_with(parameter.config_key, value))
+            self._queue(commands.RebuildWith(parameter.config_key, value))
         return value
 
     def reset_parameters(self, group: str) -> None:
@@ -183,7 +185,7 @@ class LabSession:
     def set_quality(self, name: str) -> None:
         if name not in QUALITY:
             raise Refused(f"quality {params.quote(name)}: expected one of {', '.join(QUALITY)}")
-        self._queue(lambda: self._apply_quality(name))
+        self._queue(commands.SetQuality(name))
 
     def switch_scene(self, name: str) -> None:
         """Another scene of scene_choices() (keeps the quality preset, forgets the changes made to this one)."""
@@ -205,11 +207,11 @@ class LabSession:
             fresh = self._pending_switch is _NO_SWITCH
             self._pending_switch = path
         if fresh:
-            self._queue(self._apply_switch)
+            self._queue(commands.SwitchScene())
 
     def reset(self) -> None:
         """Back to t = 0 with every value as it is now; every tool back to its script (also "Replay")."""
-        self._queue(self._reset)
+        self._queue(commands.Reset())
 
     def set_running(self, running: bool) -> None:
         self.running = bool(running)
@@ -223,7 +225,7 @@ class LabSession:
         return self.speed
 
     def single_step(self) -> None:
-        self._queue(lambda: setattr(self, "single_steps", self.single_steps + 1))
+        self._queue(commands.SingleStep())
 
     def viewer_joined(self) -> None:
         """A viewer is there: a session that waited for one starts."""
@@ -238,7 +240,7 @@ class LabSession:
             fresh = tool not in self._pending_placements
             self._pending_placements[tool] = placement
         if fresh:
-            self._queue(self._apply_placements)
+            self._queue(commands.PlaceTools())
 
     def set_resting(self, tool: str, on: bool) -> None:
         """Touch-the-tissue mode: the tool is taken by hand and lowered at once until it is REST_DEPTH_MM in the tissue
@@ -250,18 +252,18 @@ class LabSession:
         self.resting.add(tool)
         with self._lock:
             self._pending_placements.setdefault(tool, None)  # None: where the tool is when applied (_apply_placements)
-        self._queue(self._apply_placements)
+        self._queue(commands.PlaceTools())
 
     def set_energized(self, tool: str, on: bool) -> None:
         self._check_tool(tool)
         on = checked_flag(on, f"{tool}: energized")
-        self._queue(lambda: self.scene.set_energized(tool, on))
+        self._queue(commands.SetEnergized(tool, on))
 
     def release(self, tool: str | None = None) -> None:
         """Back to the script: one tool, or every tool with None."""
         if tool is not None:
             self._check_tool(tool)
-        self._queue(lambda: self.scene.release(tool))
+        self._queue(commands.Release(tool))
 
     def add_bleed_point(self, position_mm) -> None:
         """A bleed point with the default rate and radius at the surface texel nearest position_mm (MAX_BLEED_POINTS
@@ -271,7 +273,7 @@ class LabSession:
         position = self.scene.checked_position(position_mm, "position_mm")
         if len(self.scene.bleed_points) >= MAX_BLEED_POINTS:
             raise Refused(f"at most {MAX_BLEED_POINTS} bleed points in a scene")
-        self._queue(lambda: self._add_point(position))
+        self._queue(commands.AddBleedPoint(position))
 
     def add_bleed_point_at_click(self, ray_origin, ray_direction) -> bool:
         """A bleed point where a click's ray meets the tissue; False when it misses the tissue."""
@@ -283,12 +285,12 @@ class LabSession:
 
     def remove_bleed_point(self, name: str | None = None) -> None:
         """Remove a bleed point (the last one with None)."""
-        self._queue(lambda: self._remove_point(name))
+        self._queue(commands.RemoveBleedPoint(name))
 
     def move_bleed_point(self, name: str, position_mm) -> None:
         position = self.scene.checked_position(position_mm, "position_mm")
         self.scene.bleed_point(name)
-        self._queue(lambda: self.overrides.update(self.scene.move_bleed_point(name, position)))
+        self._queue(commands.MoveBleedPoint(name, position))
 
     # --- the simulation thread --------------------------------------------------------------
     def tick(self) -> int:
@@ -301,7 +303,7 @@ class LabSession:
                 break
             self._anchor = None  # a change (a reset, a new time step) counts real time from now
             try:
-                command()
+                command.apply(self)
             except Refused as exc:  # checked when queued, but the scene may have changed since
                 self.notice = str(exc)
         if self._rebuild_at is not None and time.monotonic() >= self._rebuild_at:

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from sims.scene import models
-from sims.scene.assembly import Refused, Scene
+from sims.scene.assembly import Scene
+from sims.scene.checked import Refused
 from sims.scene.config import REPO_ROOT, ConfigError, load_scene_config
 
 HEMOSTASIS = REPO_ROOT / "scenes" / "hemostasis.yaml"

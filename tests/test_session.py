@@ -15,7 +15,7 @@ import yaml
 
 from lab.session import MAX_BLEED_POINTS, MAX_PENDING, REST_DEPTH_MM, LabSession
 from sims.core.quoting import quote
-from sims.scene.assembly import Refused
+from sims.scene.checked import Refused
 from sims.scene.config import REPO_ROOT
 
 HEMOSTASIS = REPO_ROOT / "scenes" / "hemostasis.yaml"
@@ -259,6 +259,38 @@ def test_bleed_points_and_waiting_commands_are_capped(session):
         session.remove_bleed_point()
     session.tick()
     assert [point.name for point in session.scene.bleed_points] == ["vessel"]
+
+
+def test_every_change_waits_as_a_named_command_with_its_values(session):
+    """What a front end asks waits in the queue as a lab.commands type holding the checked values (a reader follows a
+    click to the scene by name); a slider dragged through many values waits once."""
+    from lab import commands
+
+    restart(session)
+    tip_c = session.scene.parameter_value(TIP)
+    session.set_energized(BALL, True)
+    session.release(BALL)
+    for value in (100.0, 150.0, 200.0):
+        session.set_parameter(TIP, value)
+    session.add_bleed_point([-15.0, -5.0, 3.0])
+    session.single_step()
+    session.reset()
+    waiting = []
+    while not session._commands.empty():
+        waiting.append(session._commands.get_nowait())
+    assert [type(command).__name__ for command in waiting] == ["SetEnergized", "Release", "SetParameters", "AddBleedPoint",
+                                                              "SingleStep", "Reset"]
+    assert all(isinstance(command, commands.Command) for command in waiting)
+    assert waiting[0] == commands.SetEnergized(BALL, True) and waiting[1] == commands.Release(BALL)
+    assert session._pending_parameters == {TIP: 200.0}
+    for command in waiting:
+        command.apply(session)
+    assert session.scene.parameter_value(TIP) == 200.0 and session.single_steps == 1
+    assert session.scene.bleed_points[-1].name != "vessel"
+    session.remove_bleed_point()
+    session.set_parameter(TIP, tip_c)
+    session.tick()
+    assert [point.name for point in session.scene.bleed_points] == ["vessel"] and session.scene.parameter_value(TIP) == tip_c
 
 
 def test_a_field_that_becomes_non_finite_stops_the_scene_and_is_named(session):

@@ -32,7 +32,7 @@ from lab.web.section_view import section_image
 from lab.web.stream import TextureStream
 from sims.core.quoting import quote
 from sims.scene import params
-from sims.scene.assembly import Refused, checked_flag, finite_vector
+from sims.scene.checked import Refused, checked_flag, finite_vector
 from sims.scene.instruments import local_frame
 
 TYPING_QUIET_S = 2.0                # a slider's box is written back only after this long without a change from a browser

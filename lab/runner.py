@@ -25,6 +25,7 @@ from PIL import Image
 from tqdm import tqdm
 
 from lab import interrupts
+from lab.views import PngFrames
 from sims.scene import checks
 from sims.scene.assembly import Scene, save_npz_atomic
 
@@ -143,9 +144,9 @@ def _steps_per_s(steps: int, wall_s: float) -> float | None:
 
 def _simulate(scene: Scene, folder: Path, total: int, frame_every: int, progress: bool) -> dict:
     """Run `total` steps, writing frames then final.png (and its final_normal.png and final_roughness.png), state.npz and metrics.json into `folder`; return metrics."""
-    if frame_every:
-        (folder / "frames").mkdir()
-        write_png(folder / "frames" / "frame_00000.png", scene.composite())
+    frames = PngFrames(folder / "frames", write_png) if frame_every else None
+    if frames is not None:
+        frames.show(scene)
     start = time.perf_counter()
     first_step = None  # wall s of step 1 with its check: the kernels load from the cache or compile then
     bar = tqdm(total=total, desc=scene.name, unit="step", file=sys.stderr, delay=1.0, disable=not progress, dynamic_ncols=True)
@@ -161,8 +162,8 @@ def _simulate(scene: Scene, folder: Path, total: int, frame_every: int, progress
             if index == 1:
                 first_step = time.perf_counter() - start
             _warn_what_was_lost(scene, bar)
-            if frame_every and index % frame_every == 0:
-                write_png(folder / "frames" / f"frame_{index // frame_every:05d}.png", scene.composite())
+            if frames is not None and index % frame_every == 0:
+                frames.show(scene)
     wall = time.perf_counter() - start
     metrics = scene.metrics()
     metrics.update(wall_s=wall, finite=True, first_step_s=first_step, steps_per_s=_steps_per_s(total - 1, wall - (first_step or 0.0)))

@@ -56,9 +56,11 @@ import warnings
 import numpy as np
 from PIL import Image
 
+from lab.views import View
 from lab.web.client_sync import ClientSync
 from lab.web.tile_delivery import Tile, Viewer
 from lab.web.tile_glb import INT16_LIMIT, Grid, TileGeometry, normal_ghosts, vertex_sums
+from sims.look.tile_mask import TileMask
 
 _MARGIN_TEXELS = 2
 EXTRA_EXAMINED = 2     # tiles a planned update examines beyond those the rate limit lets go at once (plan)
@@ -68,7 +70,7 @@ warnings.filterwarnings("ignore", message="Queued a (GlbMessage|FrameMessage) on
 
 
 
-class TextureStream:
+class TextureStream(View):
     """Streams a changing texture on a static mesh to every browser without blanking."""
 
     def __init__(self, server, surface, name: str = "/tissue", tiles: int = 8, hide_after_s: float = 3.0,
@@ -229,7 +231,7 @@ class TextureStream:
         return stats
 
     def update(self, rgb: np.ndarray, normal: np.ndarray | None = None, roughness: np.ndarray | None = None,
-               changed: tuple[int, np.ndarray] | None = None) -> dict:
+               changed: TileMask | None = None) -> dict:
         """Publish the tiles whose maps changed since their last publication, and send every browser the tiles it
         lacks. All maps in image orientation (row 0 is v = 1), the same (H, W):
         rgb: (H, W, 3) uint8 base colour, sRGB.
@@ -237,8 +239,8 @@ class TextureStream:
         (toward row 0, i.e. +v), B = z out of the surface; 128 is 0 (n = value / 127.5 - 1).
         roughness: (H, W) uint8 PBR roughness * 255, or None (then the constant roughness given to the constructor).
         A tile is published when any of its crops changed; its change is the largest over the maps (levels).
-        changed: (tile, flags) from the maps' maker: only texels in the tile x tile blocks flagged in flags ((rows,
-        cols) bool, row-major from row 0) may differ from the maps of the last update (sims.scene.assembly.Scene.
+        changed: the blocks (sims.look.tile_mask.TileMask, or a (tile, flags) pair) from the maps' maker: only texels
+        in the blocks it flags may differ from the maps of the last update (sims.scene.assembly.Scene.
         take_display_changes); the stream then compares only the tiles whose crops meet a flagged block, and those it
         has left waiting. None: any texel may have changed (every tile is compared).
         Returns {"tiles_sent": int, "bytes": int}: tile versions published (each map encoded once, then the GLB sent
@@ -281,25 +283,24 @@ class TextureStream:
             self.stats["python_s"] += time.perf_counter() - start
         return result
 
-    def plan(self, pending: tuple[int, np.ndarray]) -> tuple[int, np.ndarray] | None:
-        """Before an update whose maps are made on demand: which texel blocks it will read. pending: (block, flags)
-        from the maps' maker, the block x block texel blocks its next maps would change (flags (rows, cols) bool,
-        row-major from row 0; sims.scene.assembly.Scene.pending_display_changes). The tiles meeting a flagged block become
+    def plan(self, pending: TileMask) -> TileMask | None:
+        """Before an update whose maps are made on demand: which texel blocks it will read. pending: the blocks
+        (sims.look.tile_mask.TileMask, or a (tile, flags) pair) that the maker's next maps would change
+        (sims.scene.assembly.Scene.pending_display_changes). The tiles meeting a flagged block become
         candidates; of those the update examines the never-published ones and, most urgent first, as many as the
         rate limit lets go now plus EXTRA_EXAMINED, urgency being the change a tile had when last examined if nothing
         reached it since (the most, _MAX_LEVELS, if it was not examined since its last publication or a change
         reached it again: a tile found unchanged or settling is not passed over when a burn starts in it) times
         (1 + seconds since it was last published or examined: tiles whose changes show no texel, as heat below a
-        colour level, take their turn and do not hold the budget). Returns (block,
-        flags) of the blocks those tiles' crops meet, for the maker to bring up to date (the other blocks may be
+        colour level, take their turn and do not hold the budget). Returns the
+        TileMask of the blocks those tiles' crops meet, for the maker to bring up to date (the other blocks may be
         stale: the update does not look at them), or None before the first update (every block is wanted)."""
         with self._lock:
-            block, flags = pending
-            flags = np.asarray(flags, bool)
+            block, flags = TileMask.of(pending)
             if self._closed or self._shape is None or flags.shape != tuple(-(-size // block) for size in self._shape[0]):
                 self._examined = None
                 return None
-            self._mark_candidates((block, flags))
+            self._mark_candidates(TileMask(block, flags))
             now = self.clock()
             self._refill(now)
             fresh = [index for index in self._candidates if self._tiles[index].sent is None]
@@ -312,7 +313,7 @@ class TextureStream:
             for index in self._examined:
                 box = self._tiles[index].geometry
                 wanted[box.blocks(block)] = True
-            return block, wanted
+            return TileMask(block, wanted)
 
     def close(self) -> None:
         """Remove every node of this stream from every browser's scene. Later updates do nothing."""
@@ -341,7 +342,7 @@ class TextureStream:
                                           shape, _MARGIN_TEXELS, self.roughness, maps, even)
             tile.sent, tile.encoded, tile.glb, tile.version, tile.seen_change, tile.examined_at = None, None, None, -1, None, -1.0
 
-    def _mark_candidates(self, changed: tuple[int, np.ndarray] | None) -> None:
+    def _mark_candidates(self, changed: TileMask | None) -> None:
         """Add the tiles whose crops meet a block flagged in changed (all tiles for None) to the candidates; their
         maps change again since they were examined, so how much they changed is no longer known (seen_change)."""
         if changed is None:
@@ -349,8 +350,7 @@ class TextureStream:
             for tile in self._tiles:
                 tile.seen_change = None
             return
-        block, flags = changed
-        flags = np.asarray(flags, bool)
+        block, flags = TileMask.of(changed)
         if not flags.any():
             return
         for index, tile in enumerate(self._tiles):

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from sims.core import backend
+from sims.look.tile_mask import TileMask
 from sims.scene.config import ConfigError, load_scene_config
 from sims.scene.hands import HandInteraction
 from sims.scene.models import MODELS, SceneLinks
@@ -235,27 +236,28 @@ class Scene(SceneParameters, HandInteraction):
             model.reset()
 
     # --- outputs ------------------------------------------------------------------------------
-    def composite(self, wanted: tuple[int, np.ndarray] | None = None) -> np.ndarray:
+    def composite(self, wanted: TileMask | None = None) -> np.ndarray:
         """The display texture's base colour (H, W, 3) uint8, image orientation (row 0 = v 1); material_maps() then
         gives its normal and roughness maps. It shows the state after the last step, whenever it is called.
-        wanted: (tile, flags) from a front end that reads only some of the maps now, flags (rows, cols) bool over
-        tile x tile texel blocks (pending_display_changes' grid): only those blocks are brought up to date, the rest
-        keep what they showed and their work waits (sims.look.display_tiles). None: every texel is up to date."""
+        wanted: the blocks (sims.look.tile_mask.TileMask, or a (tile, flags) pair, on pending_display_changes' grid)
+        of a front end that reads only some of the maps now: only those are brought up to date, the rest keep what
+        they showed and their work waits (sims.look.display_tiles). None: every texel is up to date."""
         with self._timed("compose"):
             self._collect_display_changes()
             tiles = self.display_tiles
-            if wanted is not None and (wanted[0] != tiles.tile or np.shape(wanted[1]) != tiles.grid):
-                raise ValueError(f"wanted: {np.shape(wanted[1])} blocks of {wanted[0]} texels; the display has "
+            wanted = None if wanted is None else TileMask.of(wanted)
+            if wanted is not None and (wanted.tile != tiles.tile or wanted.flags.shape != tiles.grid):
+                raise ValueError(f"wanted: {wanted.flags.shape} blocks of {wanted.tile} texels; the display has "
                                  f"{tiles.grid} tiles of {tiles.tile}")
-            tiles.plan(None if wanted is None else wanted[1])
+            tiles.plan(None if wanted is None else wanted.flags)
             return self.composer.compose(tiles, **{model.look_input: model.look_layer() for model in self._shown})
 
-    def pending_display_changes(self) -> tuple[int, np.ndarray]:
-        """(tile, flags): the tile x tile texel blocks of the maps that the next composite() would change (flags
+    def pending_display_changes(self) -> TileMask:
+        """The tile x tile texel blocks of the maps that the next composite() would change (flags
         (rows, cols) bool, row-major from row 0), so a front end can ask for only some of them."""
         with self._timed("compose"):
             self._collect_display_changes()
-            return self.display_tiles.tile, self.display_tiles.pending_outputs()
+            return TileMask(self.display_tiles.tile, self.display_tiles.pending_outputs())
 
     def _collect_display_changes(self) -> None:
         """Hand the tiles the burn and the film changed since the last call to the display's pending work."""
@@ -266,10 +268,10 @@ class Scene(SceneParameters, HandInteraction):
         """(normal (H, W, 3) uint8, roughness (H, W) uint8) of the last composite() (sims.look.compose.Composer)."""
         return self.composer.maps()
 
-    def take_display_changes(self) -> tuple[int, np.ndarray]:
-        """(tile, flags): the display tiles (tile texels a side; flags (rows, cols) bool, row-major from row 0) whose
+    def take_display_changes(self) -> TileMask:
+        """The display tiles (tile texels a side; flags (rows, cols) bool, row-major from row 0) whose
         maps changed in the composites since the last call; a texture stream compares and encodes only those."""
-        return self.display_tiles.tile, self.display_tiles.take_changed()
+        return TileMask(self.display_tiles.tile, self.display_tiles.take_changed())
 
     def state_arrays(self, display_grid: bool = True) -> dict:
         """Arrays of docs/guide/headless.md ("state.npz") for the models this scene runs; display_grid False: each on its model's own grid

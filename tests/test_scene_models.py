@@ -24,10 +24,6 @@ class Ticks(models.SceneModel):
         self.steps, self.value = 0, 0.0
         self.texels = int(surface.mask.sum())
 
-    @classmethod
-    def from_config(cls, surface, config, links):
-        return cls(surface, config, links)
-
     def step(self, dt, time_s):
         Ticks.order.append(self.name)
         self.steps += 1

@@ -39,6 +39,11 @@ class SceneModel:
     def __init__(self, config: dict):
         self.config = config
 
+    @classmethod
+    def from_config(cls, surface, config: dict, links: SceneLinks) -> "SceneModel":
+        """The model on a sims.surface.texels.TissueSurface for a validated scene config."""
+        return cls(surface, config, links)
+
     def step(self, dt: float, time_s: float) -> bool:
         """Advance one step of dt s from time_s; True when any state changed (the scene then checks it for NaN)."""
         raise NotImplementedError
@@ -102,10 +107,6 @@ class HeatModel(SceneModel):
         self.active_tool = None       # (name, position mm, last move mm) of the heating tool last seen energized
         self._section_sampler = None  # sims.heat.section.SectionSampler, made on the first burn_section()
         self._coagulated: dict = {}   # heat grid texel -> 1 - exp(-Omega) read since the burn last changed
-
-    @classmethod
-    def from_config(cls, surface, config: dict, links: SceneLinks) -> "HeatModel":
-        return cls(surface, config, links)
 
     def step(self, dt: float, time_s: float) -> bool:
         self.instrument_fields.set_time(time_s)
@@ -195,24 +196,20 @@ class BloodModel(SceneModel):
         self.bleed_points = [BleedPoint(item) for item in config["bleed_points"]]
         self.display_reach = self.film.display_per_texel // 2
 
-    @classmethod
-    def from_config(cls, surface, config: dict, links: SceneLinks) -> "BloodModel":
-        return cls(surface, config, links)
+    def _throttled(self, point, time_s: float, rate: float) -> tuple[tuple[int, int], float]:
+        """(the surface texel under the point, its set rate (ml/s) after coagulation of the tissue there)."""
+        texel = self.links.texel_near(point.position_at(time_s))
+        return texel, rate * (1.0 - self.links.coagulated_fraction(texel))
 
     def rates(self, time_s: float) -> dict:
         """Current rate (ml/s) of every bleed point, after coagulation of the tissue under it."""
-        rates = {}
-        for point in self.bleed_points:
-            texel = self.links.texel_near(point.position_at(time_s))
-            rates[point.name] = point.rate_at(time_s) * (1.0 - self.links.coagulated_fraction(texel))
-        return rates
+        return {point.name: self._throttled(point, time_s, point.rate_at(time_s))[1] for point in self.bleed_points}
 
     def step(self, dt: float, time_s: float) -> bool:
         for point in self.bleed_points:
             rate = point.rate_at(time_s)
             if rate > 0.0:
-                texel = self.links.texel_near(point.position_at(time_s))
-                rate *= 1.0 - self.links.coagulated_fraction(texel)
+                texel, rate = self._throttled(point, time_s, rate)
                 self.bleeding.spawn_rate(point.name, texel, rate, dt, point.item["radius_mm"])
         suction = []
         for instrument in self.links.instruments:
